@@ -1,0 +1,42 @@
+# Every target is self-contained on a fresh machine: it creates .venv when missing, installs the
+# CPU build of torch first (so no other torch is pulled in), then the package with the extras it needs.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+TORCH_VERSION ?= 2.13.0
+PRESET ?= demo
+DEMO_OUT ?= demo-out
+PYTEST_ARGS ?=
+
+.PHONY: test demo bench lint env clean
+
+$(VENV)/.stamp-torch:
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet torch==$(TORCH_VERSION)
+	touch $@
+
+$(VENV)/.stamp-dev: $(VENV)/.stamp-torch pyproject.toml
+	$(PY) -m pip install --quiet -e ".[dev,ray]"
+	touch $@
+
+env: $(VENV)/.stamp-dev
+
+test: $(VENV)/.stamp-dev
+	$(PY) -m pytest -n 2 --dist loadfile $(PYTEST_ARGS)
+
+demo: $(VENV)/.stamp-dev
+	$(VENV)/bin/relightanyone synth --preset $(PRESET) --out $(DEMO_OUT)/world
+	$(VENV)/bin/relightanyone synth-preview $(DEMO_OUT)/world --out $(DEMO_OUT)/world-contact-sheet.png
+
+bench: $(VENV)/.stamp-dev
+	$(PY) bench/loader.py
+	$(PY) bench/synth.py
+	$(PY) bench/rasterize.py
+
+lint: $(VENV)/.stamp-dev
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+clean:
+	rm -rf $(VENV) $(DEMO_OUT) build *.egg-info

@@ -1,0 +1,1 @@
+"""Align: colour and geometry maths that bring datasets into one canonical space."""

@@ -1,0 +1,1 @@
+"""Ingest: one adapter per native dataset layout, all producing normalized records."""

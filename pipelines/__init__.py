@@ -1,0 +1,1 @@
+"""Pipelines: staged DAG runner, OLAT expansion, relight/export and the report."""

@@ -1,0 +1,14 @@
+"""relightanyone: relightable Gaussian head avatars from many multi-view capture datasets.
+
+The top-level folders of the source tree are imported as ``relightanyone.<folder>``:
+``format`` (the normalized dataset), ``render`` (cameras, rasterizer, shading), ``align`` (colour and
+geometry maths), ``ingest`` (one adapter per native layout), ``model`` (stage 1, stage 2, fitting),
+``pipelines`` (DAG runner, expansion, report) and ``synth`` (the ground-truth world).
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("relightanyone")
+except PackageNotFoundError:  # running from a source tree that was never installed
+    __version__ = "0.0.0+unknown"

@@ -1,0 +1,3 @@
+from relightanyone.cli import main
+
+main()

@@ -1,0 +1,1 @@
+"""The normalized dataset format (version 1): schema, shards, reader, PyTorch dataset, validation."""

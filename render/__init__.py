@@ -1,0 +1,1 @@
+"""Render: cameras, meshes, UV binding, the Gaussian rasterizer and RGCA shading."""
