@@ -1,0 +1,151 @@
+"""What every ingest adapter produces: one output type for all native layouts.
+
+An adapter reads a native dataset's calibration, colour and file layout and describes each image it
+finds as a :class:`SourceView` — where the bytes are, how to decode them, the camera in the dataset's own
+world (already converted to OpenCV axes and metres), and the colour calibration to apply. It does not
+decode pixels: the shared steps in :mod:`relightanyone.ingest.runner` do that per subject, in worker
+processes, so everything here is small and picklable.
+
+The conversion from each native convention happens once, inside its adapter (DESIGN §3); the shared
+steps only see these records.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# How the bytes of an ImageRef are turned into linear float RGB (H, W, 3), before colour calibration.
+CODECS = (
+    "exr-linear",  # OpenEXR float/half, scene-linear
+    "avif-srgb",  # 8-bit display-encoded with the sRGB transfer function
+    "avif-gamma22",  # 8-bit display-encoded with a pure 2.2 gamma (FaceOLAT AVIF export)
+    "png-srgb",  # 8- or 16-bit PNG, sRGB-encoded
+    "jpg-srgb",  # JPEG, sRGB-encoded
+    "png-linear",  # 16-bit PNG holding linear values scaled to [0, 1]
+    "dng-raw",  # Bayer RAW, demosaiced to linear camera RGB
+    "mp4-frame",  # one frame of a video, sRGB-encoded
+)
+
+
+@dataclass(frozen=True)
+class ImageRef:
+    """Where one native image lives.
+
+    ``path`` is a file; ``member`` names an entry inside it when it is a zip archive; ``frame_index`` picks
+    a frame when it is a video.
+    """
+
+    path: str
+    codec: str
+    member: str | None = None
+    frame_index: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.codec not in CODECS:
+            raise ValueError(f"unknown codec {self.codec!r} for {self.path}; expected one of {CODECS}")
+
+    @property
+    def label(self) -> str:
+        """Human-readable location, used as provenance and in error messages."""
+        if self.member is not None:
+            return f"{self.path}::{self.member}"
+        if self.frame_index is not None:
+            return f"{self.path}#frame={self.frame_index}"
+        return self.path
+
+
+@dataclass(frozen=True)
+class ColourCalibration:
+    """A colour correction ``rgb_out = matrix @ (rgb_in - black) + offset``.
+
+    ``space`` says where it applies: ``"linear"`` (scene-linear values, the usual case) or ``"display"``
+    (sRGB-encoded values, NeRSemble v1's affine), in which case the shared steps encode, correct and
+    decode again.
+    """
+
+    matrix: np.ndarray  # (3, 3)
+    black: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) subtracted first
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) added last
+    space: str = "linear"
+    source: str = "identity"  # file or method it came from
+
+    def __post_init__(self) -> None:
+        matrix = np.asarray(self.matrix, dtype=np.float64)
+        if matrix.shape != (3, 3) or not np.isfinite(matrix).all():
+            raise ValueError(f"colour matrix from {self.source} must be a finite 3x3, got {matrix.shape}")
+        if self.space not in ("linear", "display"):
+            raise ValueError(f"colour calibration space must be 'linear' or 'display', got {self.space!r}")
+
+    @staticmethod
+    def identity() -> ColourCalibration:
+        return ColourCalibration(matrix=np.eye(3))
+
+
+@dataclass(frozen=True)
+class NativeCamera:
+    """One camera of one view in the dataset's own world, OpenCV axes, metres, native image pixels."""
+
+    name: str
+    K: np.ndarray  # (3, 3)
+    w2c: np.ndarray  # (4, 4) native world (metres) -> camera; head pose already folded in where the format has one
+    dist: np.ndarray  # (5,) OpenCV k1, k2, p1, p2, k3
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class SourceView:
+    """One native image and everything needed to normalize it."""
+
+    subject: str
+    frame: int
+    camera: NativeCamera
+    pattern: str  # "full", "olat-017", ...
+    image: ImageRef
+    colour: ColourCalibration
+    source: str  # path inside the native dataset (relative to its root), recorded in every row
+    alpha: ImageRef | None = None  # optional alpha/foreground map of the same size
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """An input item the adapter refused while planning (goes to quarantine.jsonl)."""
+
+    item: str
+    source: str
+    reason: str
+
+
+@dataclass
+class SubjectPlan:
+    """All views of one subject: the unit of work of an ingest run."""
+
+    subject: str
+    split: str
+    views: list[SourceView]
+    refusals: list[Refusal] = field(default_factory=list)
+
+
+@dataclass
+class DatasetPlan:
+    """What an adapter found in a native dataset, before any pixel is decoded."""
+
+    dataset: str  # name of the normalized dataset to write
+    kind: str  # "olat" | "flat"
+    layout: str  # adapter name, e.g. "faceolat"
+    layout_version: str  # detected version, e.g. "v2"
+    source_root: str
+    source_dataset: str  # e.g. "FaceOLAT", "Ava-256"
+    licence: str  # licence or access terms of the source
+    subjects: list[SubjectPlan]
+    # OLAT datasets: the rig in the dataset's world (metres) and linear RGB intensities, pattern names.
+    light_positions: np.ndarray | None = None  # (L, 3)
+    light_intensities: np.ndarray | None = None  # (L, 3)
+    refusals: list[Refusal] = field(default_factory=list)
+    found: dict = field(default_factory=dict)  # facts printed before writing (cameras, frames, ...)
+
+    @property
+    def view_count(self) -> int:
+        return sum(len(s.views) for s in self.subjects)
