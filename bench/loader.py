@@ -1,0 +1,183 @@
+"""Image encodings of the normalized format, measured: size, encode/decode time, loader throughput.
+
+Compares 16-bit PNG, half-float EXR and raw float16 under the shards' Arrow IPC zstd compression on linear
+1024x1024 face-like images (smooth shading, a highlight, sensor noise, black background, about half the
+frame covered). Writes ``bench/results/loader.json`` with machine info. Run: ``python bench/loader.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from relightanyone.format.codecs import decode_image, decode_mask, encode_image, encode_mask
+from relightanyone.format.examples import face_like_image, look_at_w2c
+from relightanyone.format.schema import DatasetInfo, Provenance, build_image_row
+from relightanyone.format.shards import ShardWriter
+from relightanyone.format.torch_dataset import NormalizedTorchDataset
+
+ENCODINGS = ("png16", "exr-half", "raw-f16")
+RESULT = Path(__file__).resolve().parent / "results" / "loader.json"
+
+
+def _best_ms(function, repeats: int) -> tuple[dict[str, float], object]:
+    """Wall and CPU milliseconds of ``function()``: the minimum over ``repeats`` (the machine is shared, and
+    the minimum is the run least disturbed by other processes)."""
+    wall, cpu, result = [], [], None
+    for _ in range(repeats):
+        start_wall, start_cpu = time.perf_counter(), time.process_time()
+        result = function()
+        wall.append((time.perf_counter() - start_wall) * 1000.0)
+        cpu.append((time.process_time() - start_cpu) * 1000.0)
+    return {"wall_ms": min(wall), "cpu_ms": min(cpu), "median_wall_ms": statistics.median(wall)}, result
+
+
+def _write_dataset(root: Path, encoding: str, images: list[np.ndarray], masks: list[np.ndarray]) -> Path:
+    info = DatasetInfo(f"bench-{encoding}", "flat", "none", "bench", Provenance("bench", "none"), encoding)
+    writer = ShardWriter(root / info.name, info)
+    writer.begin()
+    size = images[0].shape[0]
+    K = np.array([[1.2 * size, 0, (size - 1) / 2], [0, 1.2 * size, (size - 1) / 2], [0, 0, 1]])
+    with writer.part("all") as part:
+        for n, (image, mask) in enumerate(zip(images, masks, strict=True)):
+            part.add(
+                build_image_row(
+                    dataset=info.name,
+                    subject="s000",
+                    frame=0,
+                    camera=f"cam{n:03d}",
+                    pattern="full",
+                    split="train",
+                    K=K,
+                    w2c=look_at_w2c(np.array([0.0, 0.0, 1.0])),
+                    image=encode_image(image, encoding),
+                    image_encoding=encoding,
+                    mask=encode_mask(mask),
+                    width=size,
+                    height=size,
+                    source=f"cam{n:03d}.exr",
+                    source_sha256="0" * 64,
+                )
+            )
+    writer.commit()
+    return root / info.name
+
+
+def _fetch_decode_ms(dataset_dir: Path, repeats: int) -> dict[str, float]:
+    """Time to read one row by key from the memory-mapped shard and decode its image and mask."""
+    from relightanyone.format.reader import NormalizedDataset
+
+    dataset = NormalizedDataset(dataset_dir)
+    keys = dataset.keys
+    dataset.decoded(keys[0])  # map the shard once
+    return _best_ms(lambda: [dataset.decoded(key) for key in keys], repeats)[0] | {"rows": len(keys)}
+
+
+def _loader_rows_per_s(dataset_dir: Path, num_workers: int, epochs: int) -> float:
+    dataset = NormalizedTorchDataset(dataset_dir)
+    loader = torch.utils.data.DataLoader(
+        dataset, batch_size=4, num_workers=num_workers, shuffle=True, persistent_workers=num_workers > 0
+    )
+    for _ in loader:  # warm-up epoch: worker start-up and page cache
+        pass
+    start = time.perf_counter()
+    rows = 0
+    for _ in range(epochs):
+        for batch in loader:
+            rows += batch["image"].shape[0]
+    return rows / (time.perf_counter() - start)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", type=int, default=1024)
+    parser.add_argument("--images", type=int, default=16)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--loader-rounds", type=int, default=2)
+    parser.add_argument("--out", type=Path, default=RESULT)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+
+    pairs = [face_like_image(args.size, args.size, seed=n) for n in range(args.images)]
+    images, masks = [p[0] for p in pairs], [p[1] for p in pairs]
+    coverage = float(np.mean([m.mean() for m in masks]))
+    results: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        dataset_dirs = {}
+        for encoding in ENCODINGS:
+            encode, encoded = _best_ms(lambda e=encoding: encode_image(images[0], e), args.repeats)
+            decode, decoded = _best_ms(lambda e=encoding, b=encoded: decode_image(b, e), args.repeats)
+            lit = masks[0]
+            relative = np.abs(decoded - images[0])[lit] / np.maximum(images[0][lit], 1e-3)
+            dataset_dirs[encoding] = _write_dataset(Path(tmp), encoding, images, masks)
+            shard_bytes = sum(p.stat().st_size for p in dataset_dirs[encoding].glob("images-*.arrow"))
+            fetch = _fetch_decode_ms(dataset_dirs[encoding], args.repeats)
+            results[encoding] = {
+                "encoded_bytes_per_image": len(encoded),
+                "shard_bytes_per_row": shard_bytes / args.images,
+                "encode": encode,
+                "decode": decode,
+                "fetch_and_decode_all_rows": fetch,
+                "fetch_and_decode_cpu_ms_per_row": fetch["cpu_ms"] / fetch["rows"],
+                "max_abs_error": float(np.abs(decoded - images[0]).max()),
+                "p99_relative_error_on_mask": float(np.percentile(relative, 99)),
+            }
+        mask_png = encode_mask(masks[0])
+        mask_timing = {
+            "bytes": len(mask_png),
+            "decode": _best_ms(lambda: decode_mask(mask_png), args.repeats)[0],
+        }
+        # Interleaved rounds, best of them: other processes on a shared machine disturb single runs.
+        for workers in (0, 2):
+            for _ in range(args.loader_rounds):
+                for encoding in ENCODINGS:
+                    rate = _loader_rows_per_s(dataset_dirs[encoding], workers, epochs=1)
+                    name = f"loader_rows_per_s_workers_{workers}"
+                    results[encoding][name] = max(results[encoding].get(name, 0.0), rate)
+    for encoding in ENCODINGS:
+        print(encoding, json.dumps(results[encoding], indent=1), flush=True)
+    fastest = min(ENCODINGS, key=lambda e: results[e]["fetch_and_decode_cpu_ms_per_row"])
+    smallest = min(ENCODINGS, key=lambda e: results[e]["shard_bytes_per_row"])
+    payload = {
+        "benchmark": "format loader: image encodings",
+        "image": {
+            "height": args.size,
+            "width": args.size,
+            "channels": 3,
+            "mask_coverage": coverage,
+            "images": args.images,
+            "content": "face-like linear shading, highlight, noise, black background",
+        },
+        "machine": {
+            "cpu_count": os.cpu_count(),
+            "platform": platform.platform(),
+            "processor": platform.processor(),
+            "python": sys.version.split()[0],
+            "torch": torch.__version__,
+            "numpy": np.__version__,
+            "pyarrow": __import__("pyarrow").__version__,
+            # The machine is shared; a high load average means noisy timings.
+            "load_average_1_5_15_min_at_end": list(os.getloadavg()),
+        },
+        "mask_png": mask_timing,
+        "results": results,
+        "least_cpu_per_row": fastest,
+        "smallest_on_disk": smallest,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(payload, indent=2) + "\n")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,233 @@
+"""Checking a normalized dataset, reporting every problem with its file and row.
+
+``validate_path(DIR)`` accepts one dataset folder or a root holding several and returns a list of
+``Problem``; an empty list means the data is sound. Checks: manifest present and of format version 1;
+every listed file present, of the listed size (truncation) and sha256 (any changed byte); no shard listed
+twice; no unlisted shard or leftover temporary file; shard schema; keys unique across shards and equal to
+the index; sane ``K`` and ``w2c``; images and masks decodable at the declared size; meshes, lights and
+quarantine readable.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from relightanyone.format.arrow_io import read_table_file, sha256_file
+from relightanyone.format.codecs import CodecError, decode_image, decode_mask
+from relightanyone.format.reader import IncompleteDatasetError, load_manifest
+from relightanyone.format.schema import (
+    IMAGE_SCHEMA,
+    INDEX_NAME,
+    LIGHT_SCHEMA,
+    MESH_SCHEMA,
+    QUARANTINE_NAME,
+    FileEntry,
+    QuarantineEntry,
+    SchemaError,
+    camera_problems,
+)
+from relightanyone.format.shards import PARTS_DIR, dataset_dirs
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One finding: the file, the row (or ``None`` for the whole file) and what is wrong."""
+
+    file: str
+    row: int | None
+    message: str
+
+    def __str__(self) -> str:
+        where = self.file if self.row is None else f"{self.file} row {self.row}"
+        return f"{where}: {self.message}"
+
+
+def _check_listed_file(dataset_dir: Path, entry: FileEntry) -> list[Problem]:
+    path = dataset_dir / entry.file
+    if not path.exists():
+        return [Problem(str(path), None, "listed in manifest.json but missing")]
+    size = path.stat().st_size
+    if size != entry.bytes:
+        state = "truncated" if size < entry.bytes else "longer than listed"
+        return [Problem(str(path), None, f"{state}: {size} bytes, manifest.json says {entry.bytes}")]
+    if sha256_file(path) != entry.sha256:
+        return [
+            Problem(str(path), None, "sha256 differs from manifest.json (the file was changed or corrupted)")
+        ]
+    return []
+
+
+def _open_stream(
+    path: Path, schema: pa.Schema, problems: list[Problem]
+) -> pa.ipc.RecordBatchStreamReader | None:
+    try:
+        reader = pa.ipc.open_stream(pa.memory_map(str(path)))
+    except (pa.ArrowException, OSError) as error:
+        problems.append(Problem(str(path), None, f"not a readable Arrow IPC stream ({error})"))
+        return None
+    if not reader.schema.equals(schema, check_metadata=True):
+        problems.append(
+            Problem(str(path), None, f"schema differs from format version 1 ({reader.schema.metadata})")
+        )
+        return None
+    return reader
+
+
+def _check_image_row(path: Path, row_number: int, values: dict, decode: bool) -> list[Problem]:
+    problems = [
+        Problem(str(path), row_number, f"{values['key']}: {p}")
+        for p in camera_problems(values["K"], values["w2c"], values["width"], values["height"])
+    ]
+    if not decode:
+        return problems
+    size = (values["height"], values["width"])
+    try:
+        image = decode_image(values["image"], values["image_encoding"])
+        if image.shape != (*size, 3):
+            problems.append(
+                Problem(str(path), row_number, f"{values['key']}: image is {image.shape}, declared {size}")
+            )
+        elif not np.all(np.isfinite(image)):
+            problems.append(Problem(str(path), row_number, f"{values['key']}: image has non-finite pixels"))
+    except CodecError as error:
+        problems.append(Problem(str(path), row_number, f"{values['key']}: image does not decode ({error})"))
+    try:
+        mask = decode_mask(values["mask"])
+        if mask.shape != size:
+            problems.append(
+                Problem(str(path), row_number, f"{values['key']}: mask is {mask.shape}, declared {size}")
+            )
+    except CodecError as error:
+        problems.append(Problem(str(path), row_number, f"{values['key']}: mask does not decode ({error})"))
+    return problems
+
+
+def _check_table(path: Path, schema: pa.Schema, problems: list[Problem]) -> pa.Table | None:
+    reader = _open_stream(path, schema, problems)
+    if reader is None:
+        return None
+    try:
+        return reader.read_all()
+    except (pa.ArrowException, OSError) as error:
+        problems.append(Problem(str(path), None, f"cannot be read ({error})"))
+        return None
+
+
+def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = False) -> list[Problem]:
+    """All problems of one dataset folder."""
+    from tqdm import tqdm
+
+    dataset_dir = Path(dataset_dir)
+    try:
+        manifest = load_manifest(dataset_dir)
+    except (IncompleteDatasetError, SchemaError) as error:
+        return [Problem(str(dataset_dir / "manifest.json"), None, str(error))]
+    problems: list[Problem] = []
+    listed = Counter(entry.file for entry in manifest.shards)
+    for name, times in sorted(listed.items()):
+        if times > 1:
+            problems.append(
+                Problem(str(dataset_dir / "manifest.json"), None, f"shard {name} is listed {times} times")
+            )
+    for path in sorted(dataset_dir.glob("images-*.arrow")):
+        if path.name not in listed:
+            problems.append(
+                Problem(str(path), None, "shard is not listed in manifest.json, so it is not trusted")
+            )
+    for path in sorted([*dataset_dir.glob("*.tmp"), dataset_dir / PARTS_DIR]):
+        if path.exists():
+            problems.append(Problem(str(path), None, "leftover of an interrupted write"))
+
+    entries = [*manifest.shards, manifest.index, *(e for e in (manifest.meshes, manifest.lights) if e)]
+    intact: set[str] = set()
+    for entry in {entry.file: entry for entry in reversed(entries)}.values():  # each file once
+        file_problems = _check_listed_file(dataset_dir, entry)
+        problems += file_problems
+        if not file_problems:
+            intact.add(entry.file)
+
+    seen: dict[str, str] = {}
+    total = sum(entry.rows for entry in manifest.shards)
+    bar = tqdm(total=total, desc=f"validate {manifest.info.name}", unit="row", disable=not progress)
+    for entry in dict.fromkeys(e.file for e in manifest.shards):
+        path = dataset_dir / entry
+        if entry not in intact:
+            continue
+        reader = _open_stream(path, IMAGE_SCHEMA, problems)
+        if reader is None:
+            continue
+        row_number = 0
+        try:
+            for batch in reader:
+                for values in batch.to_pylist():
+                    key = values["key"]
+                    if key in seen:
+                        problems.append(Problem(str(path), row_number, f"key {key!r} also in {seen[key]}"))
+                    seen[key] = f"{path.name} row {row_number}"
+                    problems += _check_image_row(path, row_number, values, decode)
+                    row_number += 1
+                    bar.update()
+        except (pa.ArrowException, OSError) as error:
+            problems.append(Problem(str(path), row_number, f"cannot be read past this row ({error})"))
+    bar.close()
+
+    index_path = dataset_dir / INDEX_NAME
+    if manifest.index.file in intact:
+        index = read_table_file(index_path)
+        if sorted(index.column("key").to_pylist()) != sorted(seen) and not problems:
+            problems.append(Problem(str(index_path), None, "keys differ from the keys in the shards"))
+    for entry, schema in ((manifest.meshes, MESH_SCHEMA), (manifest.lights, LIGHT_SCHEMA)):
+        if entry is None or entry.file not in intact:
+            continue
+        table = _check_table(dataset_dir / entry.file, schema, problems)
+        if table is not None and schema is MESH_SCHEMA:
+            for row_number, (count, flat) in enumerate(
+                zip(
+                    table.column("vertex_count").to_pylist(),
+                    table.column("vertices").to_pylist(),
+                    strict=True,
+                )
+            ):
+                if len(flat) != 3 * count or not np.all(np.isfinite(flat)):
+                    problems.append(
+                        Problem(
+                            str(dataset_dir / entry.file),
+                            row_number,
+                            f"vertices must be 3 x vertex_count ({count}) finite values",
+                        )
+                    )
+    problems += _check_quarantine(dataset_dir / QUARANTINE_NAME)
+    return problems
+
+
+def _check_quarantine(path: Path) -> list[Problem]:
+    if not path.exists():
+        return []
+    problems = []
+    for number, line in enumerate(path.read_text("utf-8").splitlines(), start=1):
+        if line.strip():
+            try:
+                QuarantineEntry(**json.loads(line))
+            except (json.JSONDecodeError, TypeError) as error:
+                problems.append(Problem(str(path), number, f"not a quarantine entry ({error})"))
+    return problems
+
+
+def validate_path(path: Path, decode: bool = True, progress: bool = False) -> list[Problem]:
+    """Problems of every dataset under ``path`` (a dataset folder or a root of several)."""
+    path = Path(path)
+    if not path.is_dir():
+        return [Problem(str(path), None, "not a folder")]
+    datasets = dataset_dirs(path)
+    if not datasets:
+        return [Problem(str(path), None, "holds no dataset (no manifest.json here or in sub-folders)")]
+    problems = []
+    for dataset_dir in datasets:
+        problems += validate_dataset(dataset_dir, decode=decode, progress=progress)
+    return problems

@@ -1,0 +1,117 @@
+"""Schema rows, manifest model and image codecs of the normalized format."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from relightanyone.format.codecs import (
+    PNG16_LINEAR_MAX,
+    CodecError,
+    decode_image,
+    decode_mask,
+    encode_image,
+    encode_mask,
+)
+from relightanyone.format.examples import example_rows, face_like_image
+from relightanyone.format.schema import (
+    IMAGE_SCHEMA,
+    DatasetInfo,
+    FileEntry,
+    ImageRow,
+    Manifest,
+    Provenance,
+    SchemaError,
+    camera_problems,
+    make_image_key,
+)
+
+
+@pytest.mark.parametrize("encoding", ["png16", "exr-half", "raw-f16"])
+def test_codec_round_trip_is_close_and_float32(encoding):
+    image, _ = face_like_image(24, 20, seed=3)
+    decoded = decode_image(encode_image(image, encoding), encoding)
+    assert decoded.dtype == np.float32 and decoded.shape == (24, 20, 3)
+    # half floats keep ~11 bits of mantissa; the PNG scale has a fixed step of 4/65535
+    tolerance = PNG16_LINEAR_MAX / 65535 if encoding == "png16" else 1e-3 * image.max()
+    assert np.abs(decoded - image).max() <= tolerance
+
+
+def test_png16_clips_above_its_linear_range_and_encoding_is_deterministic():
+    image = np.full((4, 4, 3), 10.0, np.float32)
+    assert np.allclose(decode_image(encode_image(image, "png16"), "png16"), PNG16_LINEAR_MAX)
+    assert encode_image(image * 0.1, "exr-half") == encode_image(image * 0.1, "exr-half")
+
+
+def test_codecs_refuse_bad_input():
+    with pytest.raises(CodecError, match="non-finite"):
+        encode_image(np.full((2, 2, 3), np.nan, np.float32), "raw-f16")
+    with pytest.raises(CodecError, match="shape"):
+        encode_image(np.zeros((2, 2), np.float32), "png16")
+    with pytest.raises(CodecError, match="malformed"):
+        decode_image(encode_image(np.zeros((2, 2, 3)), "raw-f16")[:-2], "raw-f16")
+    with pytest.raises(CodecError, match="unknown image encoding"):
+        encode_image(np.zeros((2, 2, 3)), "jpeg")
+
+
+def test_mask_round_trip():
+    mask = np.zeros((5, 7), bool)
+    mask[1:4, 2:6] = True
+    decoded = decode_mask(encode_mask(mask))
+    assert decoded.dtype == np.float32 and np.array_equal(decoded, mask.astype(np.float32))
+
+
+def test_image_row_arrow_round_trip_and_key():
+    row = example_rows(cameras=1)[0]
+    values = row.to_arrow_dict()
+    assert list(values) == IMAGE_SCHEMA.names
+    back = ImageRow.from_arrow_dict(values)
+    assert (
+        back.key == make_image_key("example", "s000", 0, "cam00", "full") == "example/s000/000000/cam00/full"
+    )
+    assert np.array_equal(back.w2c, row.w2c) and back.crop == (0, 0, 24, 32)
+
+
+def test_bad_rows_name_the_key_and_the_field():
+    row = example_rows(cameras=1)[0]
+    row.K = row.K * np.array([[-1, 1, 1], [1, 1, 1], [1, 1, 1]])
+    with pytest.raises(SchemaError, match=r"example/s000/000000/cam00/full.*focal"):
+        row.to_arrow_dict()
+    with pytest.raises(SchemaError, match="must not contain '/'"):
+        make_image_key("d", "a/b", 0, "c", "full")
+
+
+def test_camera_checks():
+    K = np.array([[100.0, 0, 50], [0, 100, 40], [0, 0, 1]])
+    assert camera_problems(K, np.eye(4), 100, 80) == []
+    scaled = np.eye(4)
+    scaled[:3, :3] *= 2
+    assert any("orthonormal" in p for p in camera_problems(K, scaled, 100, 80))
+    bad_last_row = np.eye(4)
+    bad_last_row[3, 0] = 1
+    assert any("last row" in p for p in camera_problems(K, bad_last_row, 100, 80))
+    far = K.copy()
+    far[0, 2] = 1e5
+    assert any("principal point" in p for p in camera_problems(far, np.eye(4), 100, 80))
+
+
+def test_manifest_json_round_trip_carries_parent_provenance():
+    capture = Provenance("FaceOLAT", "research-only EULA", tracker="VHAP", template="FLAME 2023")
+    expanded = capture.derived("FaceOLAT synthetic OLAT", "derived, same terms as parents", tracker="VHAP")
+    entry = FileEntry("images-00000.arrow", 3, "a" * 64, 100)
+    info = DatasetInfo("faceolat-expanded", "synthetic-olat", "flame", "OLAT 331 lights", expanded, "f" * 64)
+    manifest = Manifest(
+        info, {"images": 3}, [entry], FileEntry("index.arrow", 3, "b" * 64, 10), None, None, 0
+    )
+    parsed = Manifest.from_json(json.loads(manifest.dumps()))
+    assert parsed.info.provenance.parents[0].source_dataset == "FaceOLAT"
+    assert parsed.info.provenance.parents[0].licence == "research-only EULA"
+    assert parsed.dumps() == manifest.dumps()
+    broken = json.loads(manifest.dumps())
+    del broken["kind"]
+    with pytest.raises(SchemaError, match="missing field 'kind'"):
+        Manifest.from_json(broken, where="x/manifest.json")
+    with pytest.raises(SchemaError, match="kind 'hdr'"):
+        DatasetInfo("d", "hdr", "flame", "", capture, "")
