@@ -1,0 +1,131 @@
+"""Mesh helpers: OBJ loading that keeps UV seams, and differentiable face / vertex normals.
+
+A textured mesh keeps two index sets, as the OBJ file does: ``faces`` index the 3D vertices (one vertex per
+surface point, so normals and deformations stay smooth across UV seams) and ``face_uvs`` index the texture
+coordinates (a seam vertex has one UV per chart it belongs to). UVs follow the OBJ convention: ``u`` to the
+right, ``v`` up, both in [0, 1].
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+@dataclass(frozen=True)
+class TexturedMesh:
+    """A triangle mesh with per-corner texture coordinates.
+
+    Attributes:
+        vertices: ``(V, 3)`` float64 positions (the file's units).
+        faces: ``(F, 3)`` int64 vertex indices.
+        uvs: ``(T, 2)`` float64 texture coordinates (u right, v up).
+        face_uvs: ``(F, 3)`` int64 indices into ``uvs``, corner by corner with ``faces``.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uvs: np.ndarray
+    face_uvs: np.ndarray
+
+    def __post_init__(self) -> None:
+        validate_textured_mesh(self.vertices, self.faces, self.uvs, self.face_uvs, source="TexturedMesh")
+
+
+def validate_textured_mesh(
+    vertices: np.ndarray, faces: np.ndarray, uvs: np.ndarray, face_uvs: np.ndarray, source: str
+) -> None:
+    """Raise ``ValueError`` naming ``source`` and the field when shapes or indices are inconsistent."""
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"{source}: vertices must be (V, 3), got {vertices.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"{source}: faces must be (F, 3) triangles, got {faces.shape}")
+    if uvs.ndim != 2 or uvs.shape[1] != 2:
+        raise ValueError(f"{source}: uvs must be (T, 2), got {uvs.shape}")
+    if face_uvs.shape != faces.shape:
+        raise ValueError(f"{source}: face_uvs {face_uvs.shape} must match faces {faces.shape}")
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise ValueError(f"{source}: faces index vertices outside [0, {len(vertices)})")
+    if face_uvs.size and (face_uvs.min() < 0 or face_uvs.max() >= len(uvs)):
+        raise ValueError(f"{source}: face_uvs index texture coordinates outside [0, {len(uvs)})")
+
+
+def load_obj(path: str | Path) -> TexturedMesh:
+    """Load a triangulated OBJ with texture coordinates, keeping the 3D topology and the UV seams.
+
+    trimesh is asked twice: once in file order (vertices and faces as written) and once with UVs, where it
+    splits seam vertices; the second load's per-corner indices become ``face_uvs``.
+
+    Args:
+        path: ``.obj`` file with ``v``, ``vt`` and ``f v/vt`` records.
+
+    Returns:
+        :class:`TexturedMesh`.
+    """
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: OBJ file not found")
+    with warnings.catch_warnings():
+        # trimesh warns about texture-less materials while building its visuals; irrelevant here.
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ordered = trimesh.load(path, process=False, maintain_order=True, force="mesh")
+        split = trimesh.load(path, process=False, force="mesh")
+    uv = getattr(split.visual, "uv", None)
+    if uv is None:
+        raise ValueError(f"{path}: no texture coordinates ('vt' records referenced by faces) found")
+    faces = np.asarray(ordered.faces, dtype=np.int64)
+    face_uvs = np.asarray(split.faces, dtype=np.int64)
+    if faces.shape != face_uvs.shape or not np.allclose(
+        np.asarray(ordered.vertices)[faces], np.asarray(split.vertices)[face_uvs]
+    ):
+        raise ValueError(f"{path}: could not match faces to texture coordinates (mixed groups or quads?)")
+    return TexturedMesh(
+        vertices=np.asarray(ordered.vertices, dtype=np.float64),
+        faces=faces,
+        uvs=np.asarray(uv, dtype=np.float64),
+        face_uvs=face_uvs,
+    )
+
+
+def face_normals(vertices: torch.Tensor, faces: torch.Tensor, normalize: bool = True) -> torch.Tensor:
+    """Per-face normals ``(v1 - v0) x (v2 - v0)`` (counter-clockwise faces point outwards).
+
+    Args:
+        vertices: ``(..., V, 3)``.
+        faces: ``(F, 3)`` int64.
+        normalize: unit length if True, else twice the face area in length.
+
+    Returns:
+        ``(..., F, 3)``.
+    """
+    v0 = vertices[..., faces[:, 0], :]
+    v1 = vertices[..., faces[:, 1], :]
+    v2 = vertices[..., faces[:, 2], :]
+    normals = torch.cross(v1 - v0, v2 - v0, dim=-1)
+    return torch.nn.functional.normalize(normals, dim=-1) if normalize else normals
+
+
+def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Area-weighted unit vertex normals, differentiable.
+
+    Each vertex sums the unnormalised normals of its faces (so a sliver face, whose direction is noise,
+    weighs little) and normalises. Unreferenced vertices get a zero vector.
+
+    Args:
+        vertices: ``(..., V, 3)`` float.
+        faces: ``(F, 3)`` int64.
+
+    Returns:
+        ``(..., V, 3)``.
+    """
+    weighted = face_normals(vertices, faces, normalize=False)  # (..., F, 3)
+    accumulated = torch.zeros_like(vertices)
+    for corner in range(3):
+        accumulated = accumulated.index_add(-2, faces[:, corner], weighted)
+    return torch.nn.functional.normalize(accumulated, dim=-1)
