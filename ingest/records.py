@@ -20,6 +20,7 @@ import numpy as np
 CODECS = (
     "exr-linear",  # OpenEXR float/half, scene-linear
     "avif-srgb",  # 8-bit display-encoded with the sRGB transfer function
+    "avif-linear",  # 8-bit codes holding linear values scaled to [0, 1] (Ava-256 / Goliath releases)
     "avif-gamma22",  # 8-bit display-encoded with a pure 2.2 gamma (FaceOLAT AVIF export)
     "png-srgb",  # 8- or 16-bit PNG, sRGB-encoded
     "jpg-srgb",  # JPEG, sRGB-encoded
@@ -27,6 +28,10 @@ CODECS = (
     "dng-raw",  # Bayer RAW, demosaiced to linear camera RGB
     "mp4-frame",  # one frame of a video, sRGB-encoded
 )
+
+
+class LayoutError(ValueError):
+    """A native dataset folder does not have the layout an adapter reads; the message names what is missing."""
 
 
 @dataclass(frozen=True)
@@ -126,6 +131,9 @@ class SubjectPlan:
     split: str
     views: list[SourceView]
     refusals: list[Refusal] = field(default_factory=list)
+    # Tracked meshes shipped with the dataset itself (custom captures): frame -> OBJ path, in the native
+    # world and its units (see DatasetPlan.mesh_units_to_m). Empty when a tracking export provides them.
+    meshes: dict[int, str] = field(default_factory=dict)
 
 
 @dataclass
@@ -145,7 +153,33 @@ class DatasetPlan:
     light_intensities: np.ndarray | None = None  # (L, 3)
     refusals: list[Refusal] = field(default_factory=list)
     found: dict = field(default_factory=dict)  # facts printed before writing (cameras, frames, ...)
+    mesh_units_to_m: float = 1.0  # scale of SubjectPlan.meshes coordinates to metres
 
     @property
     def view_count(self) -> int:
         return sum(len(s.views) for s in self.subjects)
+
+
+@dataclass(frozen=True)
+class AdapterOptions:
+    """Selections a user passes on the command line; ``None`` keeps everything."""
+
+    dataset_name: str | None = None  # name of the normalized dataset (default: the adapter's)
+    subjects: tuple[str, ...] | None = None
+    cameras: tuple[str, ...] | None = None
+    frames: tuple[int, ...] | None = None
+    test_subjects: tuple[str, ...] = ()  # subjects written with split "test" (all others "train")
+    all_frames: bool = False  # datasets with a preferred frame (Ava-256's neutral peak): take every listed frame
+    sequence: str | None = None  # datasets recorded as named sequences (NeRSemble): which one to ingest
+
+    def keeps_subject(self, subject: str) -> bool:
+        return self.subjects is None or subject in self.subjects
+
+    def keeps_camera(self, camera: str) -> bool:
+        return self.cameras is None or camera in self.cameras
+
+    def keeps_frame(self, frame: int) -> bool:
+        return self.frames is None or frame in self.frames
+
+    def split_of(self, subject: str) -> str:
+        return "test" if subject in self.test_subjects else "train"

@@ -1,0 +1,177 @@
+"""FaceOLAT (D1) and Ava-256 (D2) adapters against the synthetic world's ground truth.
+
+The world is a reduced tiny preset (few cameras, small images, no held-out subjects) so that it renders
+in seconds; the layouts, conventions and faults it writes are the tiny preset's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+from relightanyone.align.geometry import transform_points
+from relightanyone.ingest import ava256, faceolat
+from relightanyone.ingest.records import AdapterOptions, DatasetPlan
+from relightanyone.synth.presets import PRESETS, DatasetSize
+from relightanyone.synth.truth import DatasetTruth
+from relightanyone.synth.world import generate_world
+
+SMALL = dataclasses.replace(
+    PRESETS["tiny"],
+    template_segments=16,
+    texture_size=16,
+    answer_lights=4,
+    envmap_count=0,
+    d1=DatasetSize(train_subjects=3, test_subjects=0, cameras=4, image_size=(48, 72), lights=8),
+    d2=DatasetSize(train_subjects=2, test_subjects=0, cameras=4, image_size=(52, 80), frames=2, lights=8),
+)
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    out = tmp_path_factory.mktemp("world_d1d2") / "world"
+    generate_world(out, SMALL, seed=3, datasets=("d1", "d2"), progress=False)
+    return out
+
+
+def truth_of(world, dataset: str) -> DatasetTruth:
+    return DatasetTruth.load(world / "answers" / dataset / "truth.json")
+
+
+def subject_vertices(world, dataset: str, subject: str) -> np.ndarray:
+    """(V, 3) canonical vertices of a subject's true shape (answers/<d>/subjects/<s>/shape.obj)."""
+    lines = (world / "answers" / dataset / "subjects" / subject / "shape.obj").read_text().splitlines()
+    return np.array([[float(v) for v in line.split()[1:4]] for line in lines if line.startswith("v ")])
+
+
+def project(K: np.ndarray, w2c: np.ndarray, dist: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N, 2) OpenCV projection of (N, 3) world points."""
+    rvec, _ = cv2.Rodrigues(np.ascontiguousarray(w2c[:3, :3]))
+    pixels, _ = cv2.projectPoints(
+        points.reshape(-1, 1, 3), rvec, w2c[:3, 3].copy(), K, np.asarray(dist, dtype=np.float64)
+    )
+    return pixels.reshape(-1, 2)
+
+
+@pytest.fixture(scope="module")
+def d1_plan(world) -> DatasetPlan:
+    return faceolat.plan(world / "faceolat", AdapterOptions())
+
+
+@pytest.fixture(scope="module")
+def d2_plan_all(world) -> DatasetPlan:
+    return ava256.plan(world / "ava256", AdapterOptions(all_frames=True))
+
+
+def test_d1_detects_exr_layout(world):
+    assert faceolat.detect(world / "faceolat") == "processed-exr"
+
+
+def test_d1_cameras_project_like_truth(world, d1_plan):
+    truth = truth_of(world, "d1")
+    checked = 0
+    for subject_plan in d1_plan.subjects:
+        vertices = subject_vertices(world, "d1", subject_plan.subject)
+        seen = set()
+        for view in subject_plan.views:
+            if view.camera.name in seen:  # every frame of a still take has the same camera
+                continue
+            seen.add(view.camera.name)
+            pose = truth.head_poses[(subject_plan.subject, view.frame)]
+            posed = transform_points(pose, vertices)
+            cam = truth.cameras[view.camera.name]
+            expected = project(cam.K, cam.w2c, cam.dist, posed)
+            native = transform_points(truth.world_from_canonical, posed)
+            got = project(view.camera.K, view.camera.w2c, view.camera.dist, native)
+            assert (view.camera.width, view.camera.height) == (cam.width, cam.height)
+            assert np.abs(got - expected).max() < 0.1, (subject_plan.subject, view.camera.name)
+            checked += 1
+    assert checked == len(d1_plan.subjects) * len(truth.cameras)
+
+
+def test_d1_colour_calibration_inverts_the_response(world, d1_plan):
+    truth = truth_of(world, "d1")
+    for view in d1_plan.subjects[0].views[:8]:
+        product = view.colour.matrix @ truth.colour_response[view.camera.name]
+        np.testing.assert_allclose(product, np.eye(3), atol=1e-6)
+        np.testing.assert_array_equal(view.colour.black, np.zeros(3))
+        assert view.colour.space == "linear" and view.image.codec == "exr-linear"
+
+
+def test_d1_full_on_frames_and_patterns_follow_each_take(world, d1_plan):
+    truth = truth_of(world, "d1")
+    lights = len(truth.light_positions)
+    full_sets = set()
+    for subject_plan in d1_plan.subjects:
+        assert not subject_plan.refusals
+        for camera in truth.cameras:
+            views = [v for v in subject_plan.views if v.camera.name == camera]
+            full = sorted(v.frame for v in views if v.pattern == "full")
+            assert full == truth.extra["full_on_frames"][subject_plan.subject]
+            olat = sorted(v.pattern for v in views if v.pattern != "full")
+            assert olat == [f"olat-{k:03d}" for k in range(lights)]
+        full_sets.add(tuple(truth.extra["full_on_frames"][subject_plan.subject]))
+    assert len(full_sets) == 2  # one take starts with an extra full-on frame: nothing is hard-coded
+
+
+def test_d1_lights_map_to_truth(world, d1_plan):
+    truth = truth_of(world, "d1")
+    expected = transform_points(truth.world_from_canonical, truth.light_positions)
+    np.testing.assert_allclose(d1_plan.light_positions, expected, atol=1e-9)
+    olat_duration = truth.extra["olat_duration"]
+    np.testing.assert_allclose(d1_plan.light_intensities, olat_duration / 5555.0)
+    assert d1_plan.kind == "olat" and d1_plan.light_intensities.shape == (len(expected), 3)
+
+
+def test_d2_cameras_project_like_truth(world, d2_plan_all):
+    """Head pose folded: the planned camera sees canonical (head-space, metres) vertices where the truth
+    camera saw the posed head."""
+    truth = truth_of(world, "d2")
+    checked = 0
+    for subject_plan in d2_plan_all.subjects:
+        vertices = subject_vertices(world, "d2", subject_plan.subject)
+        for view in subject_plan.views:
+            pose = truth.head_poses[(subject_plan.subject, view.frame)]
+            cam = truth.cameras[view.camera.name]
+            expected = project(cam.K, cam.w2c, cam.dist, transform_points(pose, vertices))
+            got = project(view.camera.K, view.camera.w2c, view.camera.dist, vertices)
+            assert (view.camera.width, view.camera.height) == (cam.width, cam.height)
+            assert np.abs(got - expected).max() < 0.1, (subject_plan.subject, view.frame, view.camera.name)
+            checked += 1
+    frames = SMALL.d2.frames * SMALL.d2.cameras * SMALL.d2.train_subjects
+    assert checked == frames - 1  # every view but the dropped one
+
+
+def test_d2_dropped_frame_is_refused(world, d2_plan_all):
+    dropped = truth_of(world, "d2").extra["dropped_images"][0]
+    item = f"{dropped['subject']}/{dropped['camera']}/{dropped['frame_id']:06d}"
+    subject_plan = next(s for s in d2_plan_all.subjects if s.subject == dropped["subject"])
+    assert [r.item for r in subject_plan.refusals] == [item]
+    assert "dropped" in subject_plan.refusals[0].reason
+    assert not any(
+        v.camera.name == dropped["camera"] and v.frame == dropped["frame_id"] for v in subject_plan.views
+    )
+
+
+def test_d2_neutral_frame_by_default_and_identity_colour(world):
+    truth = truth_of(world, "d2")
+    plan = ava256.plan(world / "ava256", AdapterOptions())
+    for subject_plan in plan.subjects:
+        neutral = truth.extra["captures"][subject_plan.subject]["frame_ids"][0]
+        assert {v.frame for v in subject_plan.views} == {neutral}
+        assert len(subject_plan.views) == SMALL.d2.cameras
+        for view in subject_plan.views:
+            np.testing.assert_array_equal(view.colour.matrix, np.eye(3))
+            assert view.image.codec == "avif-linear" and view.image.member.endswith(f"{neutral:06d}.avif")
+    assert plan.kind == "flat" and plan.light_positions is None
+
+
+def test_d2_frame_selection_by_id(world):
+    truth = truth_of(world, "d2")
+    subject = sorted(truth.extra["captures"])[0]
+    second = truth.extra["captures"][subject]["frame_ids"][1]
+    plan = ava256.plan(world / "ava256", AdapterOptions(subjects=(subject,), frames=(second,)))
+    assert [s.subject for s in plan.subjects] == [subject]
+    assert {v.frame for v in plan.subjects[0].views} == {second}
