@@ -62,7 +62,13 @@ def _summary_lines(dataset) -> list[str]:
     show_default=True,
     help="Number of images on the contact sheet (spread evenly over the keys of all datasets).",
 )
-def inspect_command(path: Path, out: Path | None, samples: int) -> None:
+@click.option(
+    "--overlay",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Write a PNG of the tracked mesh reprojected over sample images (datasets written by ingest).",
+)
+def inspect_command(path: Path, out: Path | None, samples: int, overlay: Path | None) -> None:
     """Summarize the normalized dataset(s) in PATH and optionally draw a contact sheet."""
     import cv2
     import numpy as np
@@ -84,6 +90,8 @@ def inspect_command(path: Path, out: Path | None, samples: int) -> None:
         )
     for dataset in datasets:
         click.echo("\n".join(_summary_lines(dataset)))
+    if overlay is not None:
+        _write_overlay(datasets, overlay, samples)
     if out is None:
         return
     picks = [(d, k) for d in datasets for k in d.keys]
@@ -105,6 +113,37 @@ def inspect_command(path: Path, out: Path | None, samples: int) -> None:
             f"could not write {out}; check the folder is writable and the name ends in .png"
         )
     click.echo(f"contact sheet: {out}")
+
+
+def _write_overlay(datasets: list, out: Path, samples: int) -> None:
+    """Reprojection overlays (``relightanyone.ingest.overlay``), one row of samples per dataset."""
+    import cv2
+    import numpy as np
+
+    from relightanyone.ingest.overlay import reprojection_overlays
+
+    rows = []
+    for dataset in datasets:
+        try:
+            tiles = reprojection_overlays(dataset.path, samples=min(samples, 8))
+        except (FileNotFoundError, KeyError) as error:
+            click.echo(f"no overlay for {dataset.path}: {error}", err=True)
+            continue
+        side = max(t.shape[0] for t in tiles)
+        tiles = [cv2.resize(t, (side, side), interpolation=cv2.INTER_AREA) for t in tiles]
+        rows.append(
+            np.concatenate(tiles + [np.zeros_like(tiles[0])] * (min(samples, 8) - len(tiles)), axis=1)
+        )
+    if not rows:
+        raise click.ClickException("no dataset in PATH was written by ingest (template.obj and meshes.arrow)")
+    width = max(r.shape[1] for r in rows)
+    sheet = np.concatenate([np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows], axis=0)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), sheet[..., ::-1]):
+        raise click.ClickException(
+            f"could not write {out}; check the folder is writable and the name ends in .png"
+        )
+    click.echo(f"reprojection overlay: {out}")
 
 
 COMMANDS: dict[str, click.Command] = {"validate": validate_command, "inspect": inspect_command}

@@ -1,0 +1,188 @@
+"""Ingest throughput and memory on the demo world (Ava-256 layout): writes bench/results/ingest.json.
+
+Measures, in one run on the same images:
+
+* ``bare_loop``: only decode + resize to the crop size + encode, one process, no files written;
+* ``end_to_end``: ``ingest_dataset`` (plan already made; alignment, decode, colour, undistort, crop, mask,
+  encode, parts, commit) with 1 and 2 local workers;
+* ``peak_memory``: peak RSS of a fresh process ingesting 2, 4, 8 ... subjects (it should stay flat).
+
+Usage: ``python bench/ingest.py [--world DIR] [--out bench/results/ingest.json]``; the world is
+generated (demo preset, Ava-256 only) when absent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_WORLD = REPO / "demo-out" / "ingest-bench-world"
+PRESET = "demo"
+
+
+def ensure_world(world: Path) -> None:
+    if (world / "world.json").is_file():
+        return
+    from relightanyone.synth.world import generate_world
+
+    print(f"generating the demo world (Ava-256 only) into {world} ...", flush=True)
+    generate_world(world, "demo", seed=0, datasets=("d2",), progress=True, overwrite=True)
+
+
+def make_plan(world: Path, subjects: int | None = None):
+    from relightanyone.ingest import ava256
+    from relightanyone.ingest.records import AdapterOptions
+
+    plan = ava256.plan(world / "ava256", AdapterOptions())
+    if subjects is not None:
+        plan.subjects = sorted(plan.subjects, key=lambda s: s.subject)[:subjects]
+    return plan
+
+
+def bare_loop(plan, size: int) -> dict:
+    """Decode + resize + encode every view of ``plan`` in this process; images per second."""
+    import cv2
+    from relightanyone.ingest.decode import TaskDecoder
+
+    from relightanyone.format.codecs import encode_image, encode_mask
+
+    cv2.setNumThreads(1)
+    views = [v for s in plan.subjects for v in s.views]
+    with TaskDecoder(plan.source_root) as decoder:  # warm the imports and caches on one view
+        image, _ = decoder.decode(views[0].image)
+        encode_image(cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA))
+    start = time.perf_counter()
+    with TaskDecoder(plan.source_root) as decoder:
+        for view in views:
+            image, _ = decoder.decode(view.image)
+            side = min(image.shape[:2])
+            resized = cv2.resize(image[:side, :side], (size, size), interpolation=cv2.INTER_AREA)
+            encode_image(resized)
+            encode_mask(resized[:, :, 0] > 0.01)
+    seconds = time.perf_counter() - start
+    return {
+        "images": len(views),
+        "seconds": round(seconds, 3),
+        "images_per_s": round(len(views) / seconds, 2),
+    }
+
+
+def end_to_end(plan, world: Path, workers: int) -> dict:
+    from relightanyone.ingest.runner import ingest_dataset
+
+    with tempfile.TemporaryDirectory(prefix="ingest-bench-") as out:
+        start = time.perf_counter()
+        summary = ingest_dataset(
+            plan,
+            world / "tracking" / "d2",
+            Path(out),
+            PRESET,
+            workers=workers,
+            progress=False,
+            template=world / "answers" / "template" / "template.obj",
+        )
+        seconds = time.perf_counter() - start
+    return {
+        "workers": workers,
+        "images": summary.rows,
+        "quarantined": summary.quarantined,
+        "seconds": round(seconds, 3),
+        "images_per_s": round(summary.rows / seconds, 2),
+    }
+
+
+def peak_memory_child(world: Path, subjects: int) -> None:
+    """Run in a fresh process: ingest ``subjects`` subjects with one worker and print peak RSS."""
+    plan = make_plan(world, subjects)
+    result = end_to_end(plan, world, 1)
+    result["subjects"] = subjects
+    result["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+    print(json.dumps(result))
+
+
+def peak_memory(world: Path, counts: list[int]) -> list[dict]:
+    rows = []
+    for count in counts:
+        output = subprocess.run(
+            [sys.executable, __file__, "--world", str(world), "--memory-child", str(count)],
+            check=True,
+            capture_output=True,
+            text=True,
+        ).stdout
+        rows.append(json.loads(output.strip().splitlines()[-1]))
+        print(f"  {count} subjects: peak RSS {rows[-1]['peak_rss_mb']} MB", flush=True)
+    return rows
+
+
+def machine() -> dict:
+    import numpy
+
+    return {
+        "cpu_count": os.cpu_count(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "numpy": numpy.__version__,
+        "load_average_1_5_15_min_at_end": list(os.getloadavg()),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--world", type=Path, default=DEFAULT_WORLD)
+    parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "ingest.json")
+    parser.add_argument("--memory-child", type=int, default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.memory_child is not None:
+        peak_memory_child(args.world, args.memory_child)
+        return
+    from relightanyone.ingest.runner import PRESET_SIZES
+
+    ensure_world(args.world)
+    plan = make_plan(args.world)
+    size = PRESET_SIZES[PRESET]
+    print(f"{plan.view_count} views of {len(plan.subjects)} subjects, crops {size}²", flush=True)
+    bare = bare_loop(plan, size)
+    print(f"bare loop: {bare['images_per_s']} images/s", flush=True)
+    one = end_to_end(plan, args.world, 1)
+    print(f"end to end, 1 worker: {one['images_per_s']} images/s", flush=True)
+    two = end_to_end(plan, args.world, 2)
+    print(f"end to end, 2 workers: {two['images_per_s']} images/s", flush=True)
+    subjects = len(plan.subjects)
+    counts = sorted({c for c in (2, 4, 8, 16) if c <= subjects} | {subjects})
+    memory = peak_memory(args.world, counts)
+    result = {
+        "benchmark": "ingest throughput (Ava-256 layout of the demo world)",
+        "world": {
+            "path": str(args.world),
+            "preset": PRESET,
+            "subjects": subjects,
+            "views": plan.view_count,
+            "crop_size": size,
+        },
+        "machine": machine(),
+        "bare_loop": bare,
+        "end_to_end": [one, two],
+        "ratios": {
+            "end_to_end_1_worker_over_bare_loop": round(one["images_per_s"] / bare["images_per_s"], 3),
+            "goal_end_to_end_over_bare_loop": round(1 / 1.3, 3),
+            "two_workers_over_one": round(two["images_per_s"] / one["images_per_s"], 3),
+            "goal_two_workers_over_one": 1.7,
+        },
+        "peak_memory": memory,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result["ratios"], indent=2))
+
+
+if __name__ == "__main__":
+    main()

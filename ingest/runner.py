@@ -1,0 +1,413 @@
+"""The shared ingest steps: a :class:`DatasetPlan` in, a normalized dataset out.
+
+Per subject (one task, one ``_parts/<subject>`` of the :class:`ShardWriter`, run by
+:func:`.subject_task.run_subject_task`), in this order:
+
+1. decode (:mod:`.decode`; videos once per task) -> 2. colour calibration (linear or display space)
+-> 3. cameras into canonical head space, metres (:mod:`.tracking`: native -> tracker -> canonical)
+-> 4. undistort -> 5. crop: the square around the projected tracked mesh (above the neck line), resized
+to the preset's size, ``K`` updated -> 6. mask: the mesh silhouette cut below the neck line, times the
+alpha map where the dataset has one -> 7. encode (the format's default encoding) -> rows.
+
+The coordinator (:func:`ingest_dataset`) relates every frame to the tracking export first (cheap: one
+mesh per frame, and it reports camera disagreement before anything is written), writes the lights, the
+template and the refusals, runs the tasks on an executor (:mod:`.executors`), skipping tasks a killed run
+already finished, and commits. The same plan gives byte-identical datasets on any executor.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .records import DatasetPlan, SubjectPlan
+from .subject_task import IngestSettings, SubjectTask
+from .tracking import AlignmentError, Template, align_subject, load_template
+
+# Square crop side per preset (DESIGN §6: tiny/demo crops 128², paper 1024²).
+PRESET_SIZES = {"tiny": 128, "demo": 128, "small": 512, "paper": 1024}
+CROP_MARGIN = 0.1  # of the head's projected extent, on each side
+# Shard bytes per stored pixel, image + mask, as measured by bench/results/loader.json (1024² rows).
+BYTES_PER_PIXEL = {"raw-f16": 2.02, "png16": 1.98, "exr-half": 1.38}
+TRACKER_NAME = "VHAP export"
+SHIPPED_TRACKER_NAME = "meshes shipped with the capture"
+REPORT_NAME = "ingest_report.json"
+TEMPLATE_NAME = "template.obj"
+NECK_MASK_NAME = "template_neck_mask.txt"
+_TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+
+
+@dataclass
+class IngestSummary:
+    """What an ingest run did."""
+
+    dataset: str
+    path: Path
+    rows: int
+    quarantined: int
+    seconds: float
+    bytes: int
+    views: int
+    subjects: int
+    resumed_subjects: int
+    camera_disagreement_mm: float
+    camera_disagreement_deg: float
+    reasons: dict[str, int] = field(default_factory=dict)
+
+    def lines(self) -> list[str]:
+        out = [
+            f"{self.dataset}: {self.rows} rows written, {self.quarantined} quarantined, "
+            f"{self.subjects} subjects ({self.resumed_subjects} resumed), {self.bytes / 1e6:.1f} MB, "
+            f"{self.seconds:.1f} s -> {self.path}",
+            f"native vs tracker cameras: worst {self.camera_disagreement_mm:.3f} mm, "
+            f"{self.camera_disagreement_deg:.4f} deg",
+        ]
+        out += [f"  quarantined ({stage}): {count}" for stage, count in sorted(self.reasons.items())]
+        return out
+
+
+def task_name(subject: str) -> str:
+    """The ShardWriter task of a subject: its name when it is a valid task name, else a stable hash."""
+    if _TASK_NAME.match(subject) and not subject.endswith(".tmp"):
+        return subject
+    import hashlib
+
+    return "subject-" + hashlib.sha1(subject.encode()).hexdigest()[:16]
+
+
+def subject_tracking_folder(tracking_dir: Path, subject: str) -> Path:
+    return Path(tracking_dir) / subject
+
+
+def check_tracking_dir(tracking_dir: Path, subjects: list[str]) -> None:
+    """Raise naming what to pass when no subject of the plan has a folder under ``tracking_dir``."""
+    tracking_dir = Path(tracking_dir)
+    if not tracking_dir.is_dir():
+        raise FileNotFoundError(f"tracking folder {tracking_dir} does not exist")
+    if not subjects or any((tracking_dir / s / "transforms.json").is_file() for s in subjects):
+        return
+    nested = sorted(
+        p.name for p in tracking_dir.iterdir() if p.is_dir() and any((p / s).is_dir() for s in subjects)
+    )
+    hint = f"; the subjects are under {tracking_dir}/{nested[0]}, pass that folder" if nested else ""
+    raise FileNotFoundError(
+        f"{tracking_dir} has no <subject>/transforms.json for any of the subjects "
+        f"({', '.join(subjects[:5])}{' ...' if len(subjects) > 5 else ''}){hint}"
+    )
+
+
+def native_cameras_by_frame(plan: SubjectPlan) -> dict[int, dict[str, np.ndarray]]:
+    """frame -> camera name -> native ``w2c (4, 4)`` of a subject's views."""
+    out: dict[int, dict[str, np.ndarray]] = {}
+    for view in plan.views:
+        out.setdefault(int(view.frame), {})[view.camera.name] = np.asarray(view.camera.w2c, dtype=np.float64)
+    return out
+
+
+def plan_tasks(plan: DatasetPlan, tracking_dir: Path | None, template: Template) -> list[SubjectTask]:
+    """Relate every (subject, frame) of ``plan`` to the tracking (no pixel is decoded): the VHAP export
+    under ``tracking_dir``, or, without one, the meshes the plan ships (custom captures)."""
+    from .tracking import shipped_tracking
+
+    tasks = []
+    for subject in sorted(plan.subjects, key=lambda s: s.subject):
+        native = native_cameras_by_frame(subject)
+        if tracking_dir is not None:
+            tracking = subject_tracking_folder(tracking_dir, subject.subject)
+        else:
+            tracking = shipped_tracking(Path(plan.source_root), subject.meshes, plan.mesh_units_to_m)
+        alignments, failures = align_subject(subject.subject, native, tracking, template)
+        tasks.append(SubjectTask(task_name(subject.subject), subject, alignments, failures))
+    names = [t.task for t in tasks]
+    if len(set(names)) != len(names):
+        raise ValueError(f"{plan.source_root}: two subjects share a name; subject names must be unique")
+    return tasks
+
+
+def alignment_report(tasks: list[SubjectTask]) -> dict:
+    """Per camera, the worst native-vs-tracker disagreement (mm, degrees) over all frames; per subject
+    the frames that could not be aligned and the mesh fit residual."""
+    per_camera: dict[str, dict[str, float]] = {}
+    subjects = {}
+    for task in tasks:
+        residuals = [a.fit_rms_mm for a in task.alignments.values()]
+        subjects[task.plan.subject] = {
+            "frames_aligned": len(task.alignments),
+            "frames_failed": {str(f): reason for f, reason in sorted(task.failures.items())},
+            "mesh_fit_rms_mm": round(max(residuals), 4) if residuals else None,
+        }
+        for alignment in task.alignments.values():
+            for agreement in alignment.agreements:
+                entry = per_camera.setdefault(agreement.camera, {"centre_mm": 0.0, "angle_deg": 0.0})
+                entry["centre_mm"] = max(entry["centre_mm"], round(agreement.centre_mm, 4))
+                entry["angle_deg"] = max(entry["angle_deg"], round(agreement.angle_deg, 5))
+    return {"cameras": dict(sorted(per_camera.items())), "subjects": subjects}
+
+
+def estimate_bytes(views: int, out_size: int, encoding: str) -> int:
+    """Expected dataset size from the encoding's measured shard bytes per pixel."""
+    return int(views * out_size * out_size * BYTES_PER_PIXEL.get(encoding, 6.0))
+
+
+# ------------------------------------------------------------------------------------------ coordinator
+def _atomic_copy(src: Path, dst: Path) -> None:
+    from relightanyone.format.arrow_io import atomic_write_bytes
+
+    atomic_write_bytes(dst, Path(src).read_bytes())
+
+
+def mean_similarity(transforms: list[np.ndarray]) -> np.ndarray:
+    """The chordal mean of similarities ``(4, 4)``: mean scale, rotation of the mean rotation matrix
+    (projected back onto SO(3)), mean translation."""
+    from relightanyone.align.geometry import decompose_similarity, similarity
+
+    parts = [decompose_similarity(T) for T in transforms]
+    U, _, Vt = np.linalg.svd(np.mean([R for _, R, _ in parts], axis=0))
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    return similarity(float(np.mean([s for s, _, _ in parts])), R, np.mean([t for _, _, t in parts], axis=0))
+
+
+def _lights(plan: DatasetPlan, tasks: list[SubjectTask]) -> tuple[list, dict]:
+    """Light rows in canonical space and how far the rig lands from there in any one frame (mm).
+
+    The rig is fixed in the native world while heads move a little between frames, so each frame sees it
+    from a slightly different canonical pose; ``lights.arrow`` holds one rig, placed with the mean of all
+    frames' ``canonical_from_native`` (the mean head pose), and the report gives the largest deviation.
+    """
+    from relightanyone.align.geometry import light_intensities_to_canonical, lights_to_canonical
+
+    from relightanyone.format.schema import LightRow
+
+    if plan.light_positions is None:
+        return [], {}
+    transforms = [a.canonical_from_native for t in tasks for _, a in sorted(t.alignments.items())]
+    if not transforms:
+        raise AlignmentError(
+            f"{plan.source_root}: no frame could be aligned, so the light rig cannot be placed"
+        )
+    placement = mean_similarity(transforms)
+    positions = lights_to_canonical(plan.light_positions, placement)
+    intensities = light_intensities_to_canonical(plan.light_intensities, placement)
+    spread = max(
+        float(np.linalg.norm(lights_to_canonical(plan.light_positions, T) - positions, axis=1).max() * 1000.0)
+        for T in transforms
+    )
+    rows = [
+        LightRow(
+            index=k,
+            name=f"light-{k:03d}",
+            position_m=tuple(positions[k]),
+            intensity_rgb=tuple(np.broadcast_to(intensities[k], (3,))),
+            pattern=f"olat-{k:03d}",
+        )
+        for k in range(len(positions))
+    ]
+    return rows, {"placement": "mean head pose over all frames", "max_frame_deviation_mm": round(spread, 3)}
+
+
+def _fingerprint(plan: DatasetPlan, settings: IngestSettings, template: Template) -> str:
+    """Changes whenever the plan's views, the settings or the template change (resume safety)."""
+    from relightanyone.format.schema import fingerprint_config
+
+    views = [
+        (
+            v.subject,
+            v.frame,
+            v.camera.name,
+            v.pattern,
+            v.image.label,
+            v.colour.source,
+            np.round(np.asarray(v.camera.w2c), 9).tolist(),
+        )
+        for s in plan.subjects
+        for v in s.views
+    ]
+    import hashlib
+
+    digest = hashlib.sha256(json.dumps(views, default=str).encode()).hexdigest()
+    return fingerprint_config(
+        {
+            "layout": plan.layout,
+            "version": plan.layout_version,
+            "views": digest,
+            "template": template.sha256,
+            "size": settings.out_size,
+            "margin": settings.margin,
+            "encoding": settings.encoding,
+            "split": {s.subject: s.split for s in plan.subjects},
+        }
+    )
+
+
+def prepare(
+    plan: DatasetPlan,
+    tracking_dir: Path | None,
+    preset: str,
+    template: Path | None = None,
+    encoding: str | None = None,
+) -> tuple[IngestSettings, Template, list[SubjectTask]]:
+    """Everything before writing: settings, the template and every frame related to the tracking.
+
+    ``tracking_dir`` None uses the meshes the plan ships (custom captures); then ``template`` is needed
+    unless the dataset folder holds ``template.obj``.
+    """
+    from relightanyone.format.codecs import DEFAULT_IMAGE_ENCODING
+
+    from .tracking import find_template
+
+    if preset not in PRESET_SIZES:
+        raise ValueError(f"unknown preset {preset!r}; expected one of {', '.join(PRESET_SIZES)}")
+    if tracking_dir is None and not any(s.meshes for s in plan.subjects):
+        raise ValueError(
+            f"{plan.source_root}: the {plan.layout} layout ships no tracked meshes; pass --tracking DIR "
+            "(a VHAP export with <subject>/transforms.json)"
+        )
+    template_path = find_template(Path(tracking_dir or plan.source_root), template)
+    loaded = load_template(template_path)
+    if tracking_dir is not None:
+        check_tracking_dir(Path(tracking_dir), [s.subject for s in plan.subjects])
+    settings = IngestSettings(
+        dataset=plan.dataset,
+        source_root=str(plan.source_root),
+        template_path=str(template_path),
+        neck_mask_path=str(loaded.neck_mask_path) if loaded.neck_mask_path else None,
+        out_size=PRESET_SIZES[preset],
+        margin=CROP_MARGIN,
+        encoding=encoding or DEFAULT_IMAGE_ENCODING,
+    )
+    return settings, loaded, plan_tasks(plan, Path(tracking_dir) if tracking_dir else None, loaded)
+
+
+def found_lines(plan: DatasetPlan, settings: IngestSettings, tasks: list[SubjectTask]) -> list[str]:
+    """What was found, printed before writing: layout, counts, refusals, camera agreement, size."""
+    report = alignment_report(tasks)
+    worst_mm = max((c["centre_mm"] for c in report["cameras"].values()), default=0.0)
+    worst_deg = max((c["angle_deg"] for c in report["cameras"].values()), default=0.0)
+    failed = sum(len(t.failures) for t in tasks)
+    lines = [
+        f"{plan.source_dataset} ({plan.layout} layout {plan.layout_version}) at {plan.source_root}",
+        f"  {len(plan.subjects)} subjects, {plan.view_count} views, "
+        f"{sum(len(s.refusals) for s in plan.subjects) + len(plan.refusals)} refused while planning",
+        f"  tracking: {sum(len(t.alignments) for t in tasks)} frames aligned, {failed} without a usable mesh; "
+        f"native vs tracker cameras agree to {worst_mm:.3f} mm / {worst_deg:.4f} deg",
+    ]
+    worst = sorted(report["cameras"].items(), key=lambda item: -item[1]["centre_mm"])
+    for camera, entry in worst[:5]:
+        if entry["centre_mm"] > 1.0 or entry["angle_deg"] > 0.1:
+            lines.append(
+                f"    camera {camera}: native and tracker differ by {entry['centre_mm']:.2f} mm, "
+                f"{entry['angle_deg']:.3f} deg"
+            )
+    for key, value in sorted(plan.found.items()):
+        text = ", ".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
+        lines.append(f"  {key}: {text[:200]}")
+    lines.append(
+        f"  output: {plan.view_count} images of {settings.out_size}x{settings.out_size} ({settings.encoding}), "
+        f"about {estimate_bytes(plan.view_count, settings.out_size, settings.encoding) / 1e6:.1f} MB"
+    )
+    return lines
+
+
+def ingest_dataset(
+    plan: DatasetPlan,
+    tracking_dir: Path | None,
+    out_root: Path,
+    preset: str = "tiny",
+    workers: int = 1,
+    executor: str = "local",
+    progress: bool = True,
+    template: Path | None = None,
+    encoding: str | None = None,
+    prepared: tuple[IngestSettings, Template, list[SubjectTask]] | None = None,
+) -> IngestSummary:
+    """Turn ``plan`` into ``out_root/<plan.dataset>/``; resumes an interrupted run of the same config.
+
+    Args:
+        tracking_dir: folder holding ``<subject>/transforms.json`` (a VHAP export per subject); None uses
+            the tracked meshes the plan ships (custom captures).
+        preset: crop size (``tiny``/``demo`` 128, ``small`` 512, ``paper`` 1024).
+        workers, executor: ``"local"`` (process pool) or ``"ray"``; one task per subject.
+        template: the template OBJ (default: found next to the tracking export).
+        prepared: the result of :func:`prepare` when the caller already ran it (the CLI prints it first).
+    """
+    from relightanyone.format.arrow_io import atomic_write_bytes
+    from relightanyone.format.schema import DatasetInfo, Provenance, QuarantineEntry
+    from relightanyone.format.shards import ShardWriter
+
+    from .executors import run_tasks
+
+    start = time.perf_counter()
+    settings, loaded, tasks = prepared or prepare(
+        plan, Path(tracking_dir) if tracking_dir else None, preset, template, encoding
+    )
+    lights, light_facts = _lights(plan, tasks)
+    lighting = (
+        f"OLAT light stage: {len(lights)} point lights (lights.arrow) and full-on frames"
+        if plan.kind == "olat"
+        else "flat, static lighting of the capture"
+    )
+    info = DatasetInfo(
+        name=plan.dataset,
+        kind=plan.kind,
+        template_mesh_id=loaded.sha256,
+        lighting=lighting,
+        provenance=Provenance(
+            source_dataset=plan.source_dataset,
+            licence=plan.licence,
+            tracker=TRACKER_NAME if tracking_dir is not None else SHIPPED_TRACKER_NAME,
+            template=f"{TEMPLATE_NAME} sha256:{loaded.sha256}",
+        ),
+        config_fingerprint=_fingerprint(plan, settings, loaded),
+    )
+    dataset_dir = Path(out_root) / plan.dataset
+    writer = ShardWriter(dataset_dir, info)
+    writer.begin()
+    if lights:
+        writer.write_lights(lights)
+    for refusal in plan.refusals:
+        writer.quarantine(QuarantineEntry(refusal.item, refusal.source, refusal.reason, stage="plan"))
+    _atomic_copy(loaded.path, dataset_dir / TEMPLATE_NAME)
+    if loaded.neck_mask_path is not None:
+        _atomic_copy(loaded.neck_mask_path, dataset_dir / NECK_MASK_NAME)
+    report = {
+        "alignment": alignment_report(tasks),
+        "lights": light_facts,
+        "layout": plan.layout,
+        "layout_version": plan.layout_version,
+        "source_root": str(plan.source_root),
+    }
+    atomic_write_bytes(
+        dataset_dir / REPORT_NAME, (json.dumps(report, indent=1, sort_keys=True) + "\n").encode()
+    )
+
+    pending = [t for t in tasks if not writer.has_part(t.task)]
+    results = run_tasks(writer, settings, pending, workers=workers, executor=executor, progress=progress)
+    manifest = writer.commit(progress=progress)
+
+    reasons: dict[str, int] = {}
+    for result in results:
+        for stage, count in result.reasons.items():
+            reasons[stage] = reasons.get(stage, 0) + count
+    if plan.refusals:
+        reasons["plan"] = reasons.get("plan", 0) + len(plan.refusals)
+    cameras = report["alignment"]["cameras"].values()
+    total_bytes = sum(entry.bytes for entry in manifest.shards)
+    return IngestSummary(
+        dataset=plan.dataset,
+        path=dataset_dir,
+        rows=manifest.counts["images"],
+        quarantined=manifest.quarantined,
+        seconds=time.perf_counter() - start,
+        bytes=total_bytes,
+        views=plan.view_count,
+        subjects=len(tasks),
+        resumed_subjects=len(tasks) - len(pending),
+        camera_disagreement_mm=max((c["centre_mm"] for c in cameras), default=0.0),
+        camera_disagreement_deg=max((c["angle_deg"] for c in cameras), default=0.0),
+        reasons=reasons,
+    )

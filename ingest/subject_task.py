@@ -1,0 +1,240 @@
+"""One ingest task: a subject's views decoded, calibrated, put in canonical space, cropped, masked and
+encoded into its own part of the :class:`~relightanyone.format.shards.ShardWriter`.
+
+The task function :func:`run_subject_task` is what every executor runs (:mod:`.executors`); it holds one
+subject at a time and returns a few counters. Steps, in order: decode (:mod:`.decode`) -> colour
+calibration -> canonical camera -> undistort + crop around the tracked mesh + resize -> mesh-silhouette
+mask (times the alpha map) -> encode -> rows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .records import SourceView, SubjectPlan
+from .tracking import AlignmentError, FrameAlignment, Template, load_template
+
+
+@dataclass(frozen=True)
+class IngestSettings:
+    """Everything a task needs besides its subject; small and picklable."""
+
+    dataset: str
+    source_root: str
+    template_path: str
+    neck_mask_path: str | None
+    out_size: int
+    margin: float
+    encoding: str
+
+
+@dataclass
+class SubjectTask:
+    """One subject's views and the alignment of each of its frames (``failures``: frame -> reason)."""
+
+    task: str
+    plan: SubjectPlan
+    alignments: dict[int, FrameAlignment]
+    failures: dict[int, str]
+
+
+@dataclass
+class TaskResult:
+    task: str
+    subject: str
+    views: int
+    rows: int
+    quarantined: int
+    bytes: int
+    skipped: bool = False
+    reasons: dict[str, int] = field(default_factory=dict)
+
+
+def canonical_mesh(alignment: FrameAlignment, template: Template) -> np.ndarray:
+    """``(V, 3)`` the frame's tracked mesh in canonical space (metres)."""
+    from relightanyone.align.geometry import transform_points
+
+    from .tracking import read_obj_vertices
+
+    tracked = read_obj_vertices(Path(alignment.mesh_path), template.vertex_count) * alignment.mesh_scale
+    return transform_points(alignment.canonical_from_tracker, tracked)
+
+
+class FrameSilhouette:
+    """The silhouette of one frame's canonical mesh in any camera, cut below the neck line.
+
+    Same rule as :func:`relightanyone.ingest.steps.mesh_mask` (a pixel is in when its first hit is a face
+    above the neck line) with the ray-casting structure built once per frame instead of once per view:
+    every camera of a frame sees the same mesh.
+    """
+
+    def __init__(self, vertices: np.ndarray, template: Template):
+        import trimesh
+
+        self.vertices = vertices
+        self.template = template
+        self.mesh = trimesh.Trimesh(vertices=vertices, faces=template.faces, process=False)
+
+    def mask(self, K: np.ndarray, w2c: np.ndarray, size: int) -> np.ndarray:
+        """``(size, size)`` bool silhouette seen by the pinhole camera ``K (3, 3)``, ``w2c (4, 4)``."""
+        from .steps import _pixel_rays, _projected_window
+
+        mask = np.zeros((size, size), dtype=bool)
+        window = _projected_window(self.vertices, K, w2c, size, size)
+        if window is None:
+            return mask
+        origins, directions = _pixel_rays(K, w2c, window)
+        first = np.asarray(self.mesh.ray.intersects_first(ray_origins=origins, ray_directions=directions))
+        hit = first >= 0
+        keep = np.zeros_like(hit)
+        keep[hit] = ~self.template.neck_faces[first[hit]]
+        x0, y0, x1, y1 = window
+        mask[y0:y1, x0:x1] = keep.reshape(y1 - y0, x1 - x0)
+        return mask
+
+
+def normalize_view(
+    view: SourceView,
+    image: np.ndarray,
+    alpha: np.ndarray | None,
+    alignment: FrameAlignment,
+    silhouette: FrameSilhouette,
+    out_size: int,
+    margin: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int, int]]:
+    """Steps 3-6 for one calibrated image.
+
+    Args:
+        image: ``(H, W, 3)`` float32 colour-calibrated linear RGB; alpha: ``(H, W)`` in [0, 1] or None.
+        silhouette: the canonical tracked mesh of the view's frame.
+    Returns:
+        ``(image (S, S, 3) float32, mask (S, S) float32, K (3, 3), w2c (4, 4), crop box)``.
+    """
+    from relightanyone.align.geometry import w2c_to_canonical
+
+    from .steps import crop_box_around_points, project_points, undistort_crop_resize
+
+    camera = view.camera
+    height, width = image.shape[:2]
+    if (width, height) != (int(camera.width), int(camera.height)):
+        raise ValueError(
+            f"image is {width}x{height} but the calibration of camera {camera.name} is for "
+            f"{camera.width}x{camera.height}"
+        )
+    w2c = w2c_to_canonical(camera.w2c, alignment.canonical_from_native)
+    vertices, template = silhouette.vertices, silhouette.template
+    head = vertices[~template.neck_vertices] if (~template.neck_vertices).sum() >= 3 else vertices
+    # The crop is taken from the undistorted image, whose pinhole camera is K itself.
+    box = crop_box_around_points(project_points(head, camera.K, w2c), (width, height), margin)
+    out, K_new = undistort_crop_resize(image, camera.K, camera.dist, box, out_size)
+    mask = silhouette.mask(K_new, w2c, out_size).astype(np.float32)
+    if alpha is not None:
+        if alpha.shape != (height, width):
+            raise ValueError(f"alpha map is {alpha.shape[1]}x{alpha.shape[0]}, image is {width}x{height}")
+        alpha_out, _ = undistort_crop_resize(alpha.astype(np.float32), camera.K, camera.dist, box, out_size)
+        mask *= np.clip(alpha_out.reshape(out_size, out_size), 0.0, 1.0)
+    return out, mask, K_new, w2c, box
+
+
+def _configure_threads() -> None:
+    """One thread per task: parallelism comes from the executor, and results stay deterministic."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:
+        pass
+
+
+def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> TaskResult:
+    """Decode, calibrate, align, crop, mask and encode one subject's views into its part."""
+    from relightanyone.format.codecs import encode_image, encode_mask
+    from relightanyone.format.schema import MeshRow, QuarantineEntry, build_image_row
+
+    from .decode import DecodeError, TaskDecoder, apply_colour_calibration
+
+    _configure_threads()
+    plan = task.plan
+    result = TaskResult(task.task, plan.subject, len(plan.views), 0, 0, 0)
+    template = load_template(
+        Path(settings.template_path), settings.neck_mask_path and Path(settings.neck_mask_path)
+    )
+
+    def refuse(part, item: str, source: str, reason: str, stage: str) -> None:
+        part.quarantine(QuarantineEntry(item=item, source=source, reason=reason, stage=stage))
+        result.quarantined += 1
+        result.reasons[stage] = result.reasons.get(stage, 0) + 1
+
+    with writer.part(task.task) as part, TaskDecoder(settings.source_root) as decoder:
+        for refusal in plan.refusals:
+            refuse(part, refusal.item, refusal.source, refusal.reason, "plan")
+        meshes: dict[int, FrameSilhouette] = {}
+        for frame, alignment in sorted(task.alignments.items()):
+            try:
+                vertices = canonical_mesh(alignment, template)
+            except ValueError as error:
+                task.failures[frame] = f"subject {plan.subject} frame {frame}: {error}"
+                continue
+            meshes[frame] = FrameSilhouette(vertices, template)
+            part.add_mesh(MeshRow(plan.subject, frame, vertices.astype(np.float32)))
+        views = sorted(plan.views, key=lambda v: (v.frame, v.camera.name, v.pattern))
+        decoder.prefetch_videos(v.image for v in views if v.frame in meshes)
+        seen: set[str] = set()
+        for view in views:
+            item = f"{plan.subject}/{view.frame:06d}/{view.camera.name}/{view.pattern}"
+            if view.frame not in meshes:
+                refuse(part, item, view.source, task.failures.get(view.frame, "no tracked mesh"), "align")
+                continue
+            if item in seen:
+                refuse(part, item, view.source, f"a second image for {item} (first one kept)", "plan")
+                continue
+            try:
+                image, sha256 = decoder.decode(view.image)
+                alpha = decoder.decode_alpha(view.alpha) if view.alpha is not None else None
+            except DecodeError as error:
+                refuse(part, item, view.source, str(error), "decode")
+                continue
+            try:
+                image = apply_colour_calibration(image, view.colour)
+                out, mask, K, w2c, box = normalize_view(
+                    view,
+                    image,
+                    alpha,
+                    task.alignments[view.frame],
+                    meshes[view.frame],
+                    settings.out_size,
+                    settings.margin,
+                )
+            except (ValueError, AlignmentError) as error:
+                refuse(part, item, view.source, f"{view.image.label}: {error}", "normalize")
+                continue
+            row = build_image_row(
+                dataset=settings.dataset,
+                subject=plan.subject,
+                frame=view.frame,
+                camera=view.camera.name,
+                pattern=view.pattern,
+                split=plan.split,
+                K=K,
+                w2c=w2c,
+                image=encode_image(out, settings.encoding),
+                image_encoding=settings.encoding,
+                mask=encode_mask(mask),
+                width=settings.out_size,
+                height=settings.out_size,
+                source=view.source,
+                source_sha256=sha256,
+                crop=box,
+                colour_matrix=view.colour.matrix,
+            )
+            part.add(row)
+            seen.add(item)
+            result.rows += 1
+            result.bytes += len(row.image) + len(row.mask)
+    return result

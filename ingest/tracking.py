@@ -1,0 +1,400 @@
+"""The template mesh and the per-frame similarity from a dataset's native world to canonical head space.
+
+Canonical head space is the tracked mesh's frame (DESIGN §3): the template's frame, metres, the head
+never moving. For every (subject, frame) two similarities are estimated and chained::
+
+    canonical_from_native = canonical_from_tracker · tracker_from_native
+
+``tracker_from_native`` (with scale: native calibrations and trackers may use different units) is the
+Umeyama fit of the native camera centres onto the tracker's centres of the cameras both know; every
+shared camera is then mapped into the tracker world and its disagreement with the tracker's own camera
+(centre distance in mm, rotation angle in degrees) is reported. ``canonical_from_tracker`` is rigid
+(unit scale): the tracker's meshes are metric, and estimating a scale against a reference of another
+shape would shrink or grow the subject's head towards the template's size. The reference is the
+subject's own ``canonical.obj`` when the export has one (VHAP's mesh mode writes the tracked shape in the
+unposed head frame) and the template otherwise; the fit uses the vertices above the neck line, which
+move with the skull.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+NECK_MASK_NAMES = ("neck_mask.txt", "template_neck_mask.txt")
+TEMPLATE_NAMES = ("template.obj", "template/template.obj")
+MIN_SHARED_CAMERAS = 3
+
+
+class AlignmentError(ValueError):
+    """A frame cannot be brought into canonical space; the message names the subject, frame and cause."""
+
+
+def read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices ``(V, 3)`` float64 and triangles ``(F, 3)`` int64 (0-based) of an OBJ file.
+
+    Only ``v`` and ``f`` records are read (texture indices after ``/`` are ignored) and vertex order is
+    kept exactly, which the template topology relies on; polygons are fanned into triangles.
+    """
+    path = Path(path)
+    vertices: list[list[float]] = []
+    faces: list[list[int]] = []
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as error:
+        raise ValueError(f"{path}: cannot read mesh ({error.strerror or error})") from None
+    for number, line in enumerate(text.splitlines(), start=1):
+        if line.startswith("v "):
+            parts = line.split()
+            if len(parts) < 4:
+                raise ValueError(f"{path}:{number}: vertex needs 3 coordinates")
+            vertices.append([float(parts[1]), float(parts[2]), float(parts[3])])
+        elif line.startswith("f "):
+            index = [int(token.split("/")[0]) for token in line.split()[1:]]
+            index = [i - 1 if i > 0 else len(vertices) + i for i in index]
+            faces.extend([index[0], index[k], index[k + 1]] for k in range(1, len(index) - 1))
+    if not vertices:
+        raise ValueError(f"{path}: no vertices found (not an OBJ mesh?)")
+    V = np.asarray(vertices, dtype=np.float64)
+    F = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if not np.all(np.isfinite(V)):
+        raise ValueError(f"{path}: vertices hold NaN or infinite coordinates")
+    if F.size and (F.min() < 0 or F.max() >= len(V)):
+        raise ValueError(f"{path}: faces index vertices outside 1..{len(V)}")
+    return V, F
+
+
+def read_obj_vertices(path: Path, expected: int | None = None) -> np.ndarray:
+    """Vertices ``(V, 3)`` of an OBJ (fast path: ``v`` records only, order kept); raises naming the file
+    when it is unreadable or when ``expected`` vertices are not there."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as error:
+        raise ValueError(f"{path}: cannot read mesh ({error.strerror or error})") from None
+    records = [line[2:].split()[:3] for line in text.splitlines() if line.startswith("v ")]
+    if not records:
+        raise ValueError(f"{path}: no vertices found (not an OBJ mesh?)")
+    try:
+        vertices = np.asarray(records, dtype=np.float64)
+    except ValueError:
+        raise ValueError(f"{path}: a vertex record does not hold 3 numbers") from None
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"{path}: a vertex record does not hold 3 numbers")
+    if not np.all(np.isfinite(vertices)):
+        raise ValueError(f"{path}: vertices hold NaN or infinite coordinates")
+    if expected is not None and len(vertices) != expected:
+        raise ValueError(
+            f"{path}: mesh has {len(vertices)} vertices but the template has {expected} "
+            "(a different topology?)"
+        )
+    return vertices
+
+
+@dataclass(frozen=True)
+class Template:
+    """The shared topology: ``vertices (V, 3)``, ``faces (F, 3)``, neck masks per vertex ``(V,)`` and per
+    face ``(F,)`` (a face is below the neck line when any of its vertices is), and the file's sha256."""
+
+    path: Path
+    vertices: np.ndarray
+    faces: np.ndarray
+    neck_vertices: np.ndarray
+    neck_faces: np.ndarray
+    sha256: str
+    neck_mask_path: Path | None
+
+    @property
+    def vertex_count(self) -> int:
+        return int(self.vertices.shape[0])
+
+
+def find_template(tracking_dir: Path, explicit: Path | None = None) -> Path:
+    """The template OBJ: ``explicit`` when given, else ``<tracking>/template.obj`` or
+    ``<tracking>/template/template.obj``; raises naming the places looked at."""
+    if explicit is not None:
+        explicit = Path(explicit)
+        if not explicit.is_file():
+            raise FileNotFoundError(f"template mesh {explicit} does not exist")
+        return explicit
+    candidates = [Path(tracking_dir) / name for name in TEMPLATE_NAMES]
+    candidates += [Path(tracking_dir).parent / name for name in TEMPLATE_NAMES]
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    looked = ", ".join(str(c) for c in candidates)
+    raise FileNotFoundError(f"no template mesh found (looked at {looked}); pass --template PATH/template.obj")
+
+
+@functools.lru_cache(maxsize=4)
+def load_template(path: Path, neck_mask_path: Path | None = None) -> Template:
+    """Read the template OBJ and its neck mask (one 0/1 per vertex; ``neck_mask.txt`` next to it by
+    default; no file means no neck cut)."""
+    path = Path(path)
+    vertices, faces = read_obj(path)
+    if faces.size == 0:
+        raise ValueError(f"{path}: the template has no faces")
+    if neck_mask_path is None:
+        neck_mask_path = next((path.parent / n for n in NECK_MASK_NAMES if (path.parent / n).is_file()), None)
+    neck_vertices = np.zeros(len(vertices), dtype=bool)
+    if neck_mask_path is not None:
+        values = np.loadtxt(neck_mask_path, dtype=np.float64, ndmin=1)
+        if values.shape != (len(vertices),):
+            raise ValueError(
+                f"{neck_mask_path}: neck mask has {values.size} entries for {len(vertices)} template vertices"
+            )
+        neck_vertices = values > 0.5
+    return Template(
+        path=path,
+        vertices=vertices,
+        faces=faces,
+        neck_vertices=neck_vertices,
+        neck_faces=neck_vertices[faces].any(axis=1),
+        sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
+        neck_mask_path=Path(neck_mask_path) if neck_mask_path is not None else None,
+    )
+
+
+@dataclass(frozen=True)
+class TrackerCamera:
+    """A tracker camera in the tracker world, OpenCV axes: ``K (3, 3)``, ``w2c (4, 4)``."""
+
+    name: str
+    K: np.ndarray
+    w2c: np.ndarray
+    width: int
+    height: int
+
+
+@dataclass
+class VhapSubject:
+    """One subject's VHAP export: cameras by id, mesh file per native frame, optional canonical shape."""
+
+    folder: Path
+    cameras: dict[str, TrackerCamera]
+    meshes: dict[int, Path]
+    canonical_mesh: Path | None = None
+    mesh_scale: float = 1.0  # mesh coordinates -> metres of the tracker world
+    native_world: bool = False  # meshes are in the native world already (no camera fit needed)
+
+    def mesh_for_frame(self, frame: int) -> Path | None:
+        """The tracked mesh of native ``frame``; a single-timestep export (static head) serves every frame."""
+        if frame in self.meshes:
+            return self.meshes[frame]
+        if len(set(self.meshes.values())) == 1:
+            return next(iter(self.meshes.values()))
+        return None
+
+
+def _native_frame(entry: dict, where: str) -> int:
+    """Native frame number of a transforms.json frame: ``timestep_index_original``, else the digits of
+    ``timestep_id``, else ``timestep_index``."""
+    if "timestep_index_original" in entry:
+        return int(entry["timestep_index_original"])
+    ident = str(entry.get("timestep_id", ""))
+    digits = "".join(ch for ch in ident.split("_")[-1] if ch.isdigit())
+    if digits:
+        return int(digits)
+    if "timestep_index" in entry:
+        return int(entry["timestep_index"])
+    raise ValueError(f"{where}: frame has no timestep_index_original, timestep_id or timestep_index")
+
+
+def read_vhap_subject(folder: Path) -> VhapSubject:
+    """Read ``<folder>/transforms.json`` and find ``meshes/{t:05d}.obj`` (datasets.md §6.2).
+
+    Cameras come from :func:`relightanyone.render.calibration_io.from_transforms_json` (OpenGL
+    camera-to-world and flipped ``cy`` undone there), one per ``camera_id``.
+    """
+    import json
+
+    from relightanyone.render.calibration_io import from_transforms_json
+
+    folder = Path(folder)
+    path = folder / "transforms.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: expected a VHAP export (transforms.json + meshes/)")
+    document = json.loads(path.read_text())
+    rig = from_transforms_json(document if "frames" in document else path, per="camera")
+    cameras = {}
+    for i, name in enumerate(rig.names or ()):
+        cameras[str(name)] = TrackerCamera(
+            name=str(name),
+            K=rig.K[i].numpy().astype(np.float64),
+            w2c=rig.w2c[i].numpy().astype(np.float64),
+            width=int(rig.width[i]),
+            height=int(rig.height[i]),
+        )
+    meshes: dict[int, Path] = {}
+    for i, entry in enumerate(document["frames"]):
+        where = f"{path} frames[{i}]"
+        frame = _native_frame(entry, where)
+        relative = entry.get("mesh_path")
+        if relative is None:
+            relative = f"meshes/{int(entry.get('timestep_index', 0)):05d}.obj"
+        meshes.setdefault(frame, folder / relative)
+    canonical = folder / "canonical.obj"
+    return VhapSubject(folder, cameras, meshes, canonical if canonical.is_file() else None)
+
+
+@dataclass(frozen=True)
+class CameraAgreement:
+    """How far a native camera, mapped into the tracker world, is from the tracker's camera."""
+
+    camera: str
+    frame: int
+    centre_mm: float
+    angle_deg: float
+
+
+@dataclass(frozen=True)
+class FrameAlignment:
+    """Similarities of one (subject, frame) (all ``(4, 4)``) and the tracked mesh they come from."""
+
+    subject: str
+    frame: int
+    mesh_path: str
+    canonical_from_native: np.ndarray
+    canonical_from_tracker: np.ndarray
+    tracker_from_native: np.ndarray
+    fit_rms_mm: float
+    agreements: tuple[CameraAgreement, ...] = field(default_factory=tuple)
+    mesh_scale: float = 1.0
+
+
+def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Angle in degrees of the rotation taking ``R_b`` to ``R_a`` (both ``(3, 3)``)."""
+    cosine = (np.trace(R_a @ R_b.T) - 1.0) / 2.0
+    return math.degrees(math.acos(float(np.clip(cosine, -1.0, 1.0))))
+
+
+def fit_tracker_from_native(
+    native_w2c: dict[str, np.ndarray], tracker: dict[str, TrackerCamera], frame: int
+) -> tuple[np.ndarray, tuple[CameraAgreement, ...]]:
+    """Similarity ``tracker_from_native (4, 4)`` from the cameras both rigs know, and the per-camera
+    disagreement after the fit. Raises :class:`AlignmentError` with fewer than 3 shared cameras."""
+    from relightanyone.align.geometry import camera_centre, umeyama, w2c_to_canonical
+
+    shared = sorted(name for name in native_w2c if name in tracker)
+    if len(shared) < MIN_SHARED_CAMERAS:
+        raise AlignmentError(
+            f"frame {frame}: only {len(shared)} camera(s) ({', '.join(shared) or 'none'}) are in both the "
+            f"native calibration and the tracking export; {MIN_SHARED_CAMERAS} are needed to relate the two worlds"
+        )
+    native_centres = np.stack([camera_centre(native_w2c[n]) for n in shared])
+    tracker_centres = np.stack([camera_centre(tracker[n].w2c) for n in shared])
+    try:
+        T = umeyama(native_centres, tracker_centres, with_scale=True)
+    except ValueError as error:
+        raise AlignmentError(f"frame {frame}: cannot relate native and tracker cameras ({error})") from None
+    agreements = []
+    for name, centre in zip(shared, tracker_centres, strict=True):
+        mapped = w2c_to_canonical(native_w2c[name], T)
+        agreements.append(
+            CameraAgreement(
+                camera=name,
+                frame=int(frame),
+                centre_mm=float(np.linalg.norm(camera_centre(mapped) - centre) * 1000.0),
+                angle_deg=rotation_angle_deg(mapped[:3, :3], tracker[name].w2c[:3, :3]),
+            )
+        )
+    return T, tuple(agreements)
+
+
+def fit_canonical_from_tracker(
+    tracked: np.ndarray, reference: np.ndarray, rigid_vertices: np.ndarray
+) -> tuple[np.ndarray, float]:
+    """Rigid ``canonical_from_tracker (4, 4)`` with ``reference ≈ T @ tracked`` on ``rigid_vertices``
+    ``(V,)`` bool, and the RMS residual in mm."""
+    from relightanyone.align.geometry import estimate_canonical_from_mesh, transform_points
+
+    mask = rigid_vertices if rigid_vertices.sum() >= 3 else None
+    T = estimate_canonical_from_mesh(tracked, reference, vertex_mask=mask, with_scale=False)
+    used = slice(None) if mask is None else mask
+    residual = transform_points(T, tracked[used]) - reference[used]
+    return T, float(np.sqrt(np.mean(np.sum(residual**2, axis=1))) * 1000.0)
+
+
+def align_frame(
+    subject: str,
+    frame: int,
+    native_w2c: dict[str, np.ndarray],
+    vhap: VhapSubject,
+    template: Template,
+    reference: np.ndarray,
+) -> FrameAlignment:
+    """Chain the two fits for one (subject, frame); raises :class:`AlignmentError` naming the cause."""
+    mesh_path = vhap.mesh_for_frame(frame)
+    if mesh_path is None:
+        raise AlignmentError(
+            f"subject {subject} frame {frame}: the tracking export {vhap.folder} has no mesh for this frame"
+        )
+    try:
+        tracked = read_obj_vertices(mesh_path, template.vertex_count) * vhap.mesh_scale
+    except ValueError as error:
+        raise AlignmentError(f"subject {subject} frame {frame}: {error}") from None
+    if vhap.native_world:
+        tracker_from_native, agreements = np.eye(4), ()
+    else:
+        tracker_from_native, agreements = fit_tracker_from_native(native_w2c, vhap.cameras, frame)
+    canonical_from_tracker, rms_mm = fit_canonical_from_tracker(tracked, reference, ~template.neck_vertices)
+    return FrameAlignment(
+        subject=subject,
+        frame=int(frame),
+        mesh_path=str(mesh_path),
+        canonical_from_native=canonical_from_tracker @ tracker_from_native,
+        canonical_from_tracker=canonical_from_tracker,
+        tracker_from_native=tracker_from_native,
+        fit_rms_mm=rms_mm,
+        agreements=agreements,
+        mesh_scale=vhap.mesh_scale,
+    )
+
+
+def subject_reference(vhap: VhapSubject, template: Template) -> np.ndarray:
+    """``(V, 3)`` the shape the tracked meshes are registered to: the export's ``canonical.obj`` when it
+    has one with the template's vertex count, else the template."""
+    if vhap.canonical_mesh is not None:
+        try:
+            return read_obj_vertices(vhap.canonical_mesh, template.vertex_count) * vhap.mesh_scale
+        except ValueError:
+            pass
+    return template.vertices
+
+
+def shipped_tracking(folder: Path, meshes: dict[int, str], units_to_m: float) -> VhapSubject:
+    """Tracking that ships with the dataset (custom captures): meshes already in the native world, so the
+    tracker world is the native world (metres after ``units_to_m``) and no camera fit is needed."""
+    return VhapSubject(Path(folder), {}, {int(f): Path(p) for f, p in meshes.items()}, None, units_to_m, True)
+
+
+def align_subject(
+    subject: str,
+    native_w2c_by_frame: dict[int, dict[str, np.ndarray]],
+    tracking: Path | VhapSubject,
+    template: Template,
+) -> tuple[dict[int, FrameAlignment], dict[int, str]]:
+    """Align every frame of a subject: ``({frame: FrameAlignment}, {frame: reason it failed})``.
+
+    ``native_w2c_by_frame``: frame -> camera name -> native ``w2c (4, 4)`` (metres, head pose folded).
+    ``tracking``: the subject's VHAP export folder, or an already built :class:`VhapSubject`. A missing
+    tracking folder fails every frame with the path in the reason.
+    """
+    failures: dict[int, str] = {}
+    alignments: dict[int, FrameAlignment] = {}
+    try:
+        vhap = tracking if isinstance(tracking, VhapSubject) else read_vhap_subject(tracking)
+    except (OSError, ValueError, KeyError) as error:
+        return {}, {frame: f"subject {subject}: {error}" for frame in native_w2c_by_frame}
+    reference = subject_reference(vhap, template)
+    for frame, native in sorted(native_w2c_by_frame.items()):
+        try:
+            alignments[frame] = align_frame(subject, frame, native, vhap, template, reference)
+        except AlignmentError as error:
+            failures[frame] = str(error)
+    return alignments, failures

@@ -1,0 +1,243 @@
+"""Bad input and faults: corrupt files, unsafe zips, missing cameras and meshes, bad calibrations, the CLI.
+
+Inputs are small hand-made custom captures (a procedural template seen by four cameras, noise images),
+so nothing here needs the synthetic world's renderer.
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from relightanyone.ingest import custom
+from relightanyone.ingest.decode import DecodeError, TaskDecoder
+from relightanyone.ingest.records import AdapterOptions, ImageRef, LayoutError
+from relightanyone.ingest.runner import ingest_dataset
+
+from relightanyone.format.reader import NormalizedDataset
+
+CAMERA_NAMES = ("c0", "c1", "c2", "c3")
+SIZE = (96, 128)  # width, height
+
+
+def make_capture(root: Path, subjects=("s1", "s2"), frames=(0, 1)) -> Path:
+    """A custom capture in metres: template.obj + neck mask at the root, 4 cameras, noise PNG images."""
+    import cv2
+    from relightanyone.synth.capture import look_at_w2c
+    from relightanyone.synth.template import make_template, write_obj, write_template
+
+    template = make_template(12)
+    write_template(root, template)
+    width, height = SIZE
+    focal = 260.0
+    cameras = {}
+    for k, name in enumerate(CAMERA_NAMES):
+        angle = np.radians(-30 + 20 * k)
+        eye = np.array([np.sin(angle), 0.05, np.cos(angle)]) * 0.9
+        cameras[name] = {
+            "K": [[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]],
+            "dist": [0.01, 0.0, 0.0, 0.0, 0.0],
+            "w2c": look_at_w2c(eye, np.zeros(3)).tolist(),
+            "width": width,
+            "height": height,
+        }
+    (root / "cameras.json").write_text(json.dumps({"units": "m", "encoding": "srgb", "cameras": cameras}))
+    rng = np.random.default_rng(0)
+    for subject in subjects:
+        for frame in frames:
+            folder = root / "images" / subject / f"{frame:06d}"
+            folder.mkdir(parents=True)
+            for name in CAMERA_NAMES:
+                cv2.imwrite(
+                    str(folder / f"{name}.png"), rng.integers(0, 255, (height, width, 3), dtype=np.uint8)
+                )
+            shift = np.array([0.0, 0.002 * frame, 0.0])
+            write_obj(
+                root / "meshes" / subject / f"{frame:06d}.obj", template.vertices + shift, template.faces
+            )
+    return root
+
+
+@pytest.fixture
+def capture(tmp_path) -> Path:
+    return make_capture(tmp_path / "capture")
+
+
+def ingest(capture: Path, out: Path, **kwargs):
+    plan = custom.plan(capture, AdapterOptions())
+    return ingest_dataset(
+        plan, None, out, "tiny", progress=False, template=capture / "template.obj", **kwargs
+    )
+
+
+def dataset_bytes(path: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(path.iterdir()) if p.is_file()}
+
+
+def test_clean_capture_is_written_with_provenance(capture, tmp_path):
+    summary = ingest(capture, tmp_path / "out")
+    assert (summary.rows, summary.quarantined) == (16, 0)
+    dataset = NormalizedDataset(summary.path)
+    row = dataset.row(dataset.keys[0])
+    assert (row.width, row.height) == (128, 128)
+    assert row.source.startswith("images/") and len(row.source_sha256) == 64
+    import hashlib
+
+    assert row.source_sha256 == hashlib.sha256((capture / row.source).read_bytes()).hexdigest()
+    manifest = json.loads((summary.path / "manifest.json").read_text())
+    template_sha = hashlib.sha256((capture / "template.obj").read_bytes()).hexdigest()
+    assert manifest["template_mesh_id"] == template_sha
+    assert manifest["provenance"]["tracker"] == "meshes shipped with the capture"
+    assert (summary.path / "template.obj").read_bytes() == (capture / "template.obj").read_bytes()
+    assert len(dataset.meshes()) == 4
+    # The reprojection overlay draws the mesh where the mask is (4x upscaled drawing).
+    from relightanyone.ingest.overlay import HEAD_COLOUR, reprojection_overlays
+
+    key = "custom/s1/000001/c2/full"
+    (overlay,) = reprojection_overlays(summary.path, keys=[key])
+    _, _, mask = dataset.decoded(key)
+    drawn = np.all(overlay == HEAD_COLOUR, axis=-1).reshape(128, 4, 128, 4).any(axis=(1, 3))
+    import cv2
+
+    near_mask = cv2.dilate((mask > 0.5).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    assert drawn.sum() > 200 and (drawn & ~near_mask).sum() == 0
+
+
+def test_corrupt_image_missing_camera_and_bad_mesh_are_quarantined(capture, tmp_path):
+    (capture / "images" / "s1" / "000000" / "c0.png").write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    (capture / "images" / "s1" / "000000" / "c9.png").write_bytes(b"")  # camera absent from cameras.json
+    mesh = capture / "meshes" / "s2" / "000001.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")  # wrong vertex count
+    summary = ingest(capture, tmp_path / "out")
+    assert summary.rows == 16 - 1 - 4
+    assert summary.quarantined == 1 + 1 + 4
+    entries = {e.item: e for e in NormalizedDataset(summary.path).quarantine()}
+    assert "c0.png" in entries["s1/000000/c0/full"].reason
+    assert entries["s1/000000/c0/full"].stage == "decode"
+    assert "cameras.json" in entries["s1/000000/c9/full"].reason
+    bad_mesh = entries["s2/000001/c2/full"]
+    assert "000001.obj" in bad_mesh.reason and "vertices" in bad_mesh.reason
+    assert summary.reasons == {"decode": 1, "plan": 1, "align": 4}
+
+
+def test_alpha_maps_multiply_the_mesh_mask(capture, tmp_path):
+    import cv2
+
+    folder = capture / "alpha" / "s1" / "000000"
+    folder.mkdir(parents=True)
+    cv2.imwrite(str(folder / "c1.png"), np.zeros((SIZE[1], SIZE[0]), np.uint8))
+    dataset = NormalizedDataset(ingest(capture, tmp_path / "out").path)
+    _, _, cut = dataset.decoded("custom/s1/000000/c1/full")
+    _, _, kept = dataset.decoded("custom/s1/000000/c2/full")
+    assert cut.max() == 0.0 and kept.mean() > 0.1
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda d: d["cameras"]["c1"].pop("K"), "camera 'c1': missing key 'K'"),
+        (lambda d: d.pop("units"), "missing key 'units'"),
+        (lambda d: d["cameras"]["c2"]["w2c"][0].__setitem__(0, float("nan")), "camera 'c2' key 'w2c'"),
+        (lambda d: d["cameras"]["c3"].__setitem__("w2c", np.zeros((4, 4)).tolist()), "camera 'c3' key 'w2c'"),
+        (lambda d: d.__setitem__("units", "inch"), "'units' must be one of"),
+    ],
+)
+def test_bad_calibration_names_file_camera_and_key(capture, edit, message):
+    path = capture / "cameras.json"
+    document = json.loads(path.read_text())
+    edit(document)
+    path.write_text(json.dumps(document))
+    with pytest.raises(LayoutError) as error:
+        custom.plan(capture, AdapterOptions())
+    assert message in str(error.value) and "cameras.json" in str(error.value)
+
+
+def test_missing_layout_pieces_are_named(tmp_path):
+    (tmp_path / "images").mkdir()
+    with pytest.raises(LayoutError, match="cameras.json, meshes"):
+        custom.detect(tmp_path)
+
+
+def test_unsafe_truncated_and_incomplete_zips(tmp_path):
+    archive = tmp_path / "cam1.zip"
+    with zipfile.ZipFile(archive, "w") as handle:
+        handle.writestr("cam1/000001.png", b"x")
+        handle.writestr("../x", b"y")
+    with TaskDecoder(tmp_path) as decoder:
+        with pytest.raises(DecodeError, match="outside the archive"):
+            decoder.read_bytes(ImageRef("cam1.zip", "png-srgb", member="../x"))
+        with pytest.raises(DecodeError, match="no member 'cam1/000002.png'"):
+            decoder.read_bytes(ImageRef("cam1.zip", "png-srgb", member="cam1/000002.png"))
+    truncated = tmp_path / "cut.zip"
+    truncated.write_bytes(archive.read_bytes()[: archive.stat().st_size // 3])
+    with TaskDecoder(tmp_path) as decoder, pytest.raises(DecodeError, match="cut.zip.*truncated"):
+        decoder.read_bytes(ImageRef("cut.zip", "png-srgb", member="cam1/000001.png"))
+
+
+@pytest.mark.parametrize("codec", ["exr-linear", "avif-srgb", "dng-raw", "jpg-srgb"])
+def test_corrupt_files_of_every_codec_raise_naming_the_file(tmp_path, codec):
+    (tmp_path / "bad.bin").write_bytes(b"\x00\x01garbage" * 50)
+    with TaskDecoder(tmp_path) as decoder, pytest.raises(DecodeError, match="bad.bin"):
+        decoder.decode(ImageRef("bad.bin", codec))
+
+
+def test_video_frames_are_decoded_in_one_pass_and_corrupt_videos_refused(tmp_path):
+    import av
+
+    frames = [np.full((32, 48, 3), 40 * i, np.uint8) for i in range(5)]
+    with av.open(str(tmp_path / "cam.mp4"), "w", format="mp4") as container:
+        stream = container.add_stream("libx264", rate=25, options={"crf": "0"})
+        stream.width, stream.height, stream.pix_fmt = 48, 32, "yuv444p"
+        for frame in frames:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    refs = [ImageRef("cam.mp4", "mp4-frame", frame_index=i) for i in (3, 1)]
+    with TaskDecoder(tmp_path) as decoder:
+        decoder.prefetch_videos(refs)
+        images = [decoder.decode(ref)[0] for ref in refs]
+        with pytest.raises(DecodeError, match="no frame 9"):
+            decoder.decode(ImageRef("cam.mp4", "mp4-frame", frame_index=9))
+    from relightanyone.align.colour import srgb_to_linear
+
+    for image, index in zip(images, (3, 1), strict=True):
+        assert np.allclose(image, srgb_to_linear(np.float32(40 * index / 255)), atol=2e-3)
+    (tmp_path / "bad.mp4").write_bytes(b"not a video" * 10)
+    with TaskDecoder(tmp_path) as decoder, pytest.raises(DecodeError, match="bad.mp4"):
+        decoder.decode(ImageRef("bad.mp4", "mp4-frame", frame_index=0))
+
+
+def test_cli_dry_run_prints_findings_and_writes_nothing(capture, tmp_path):
+    from relightanyone.ingest.cli import COMMANDS
+
+    out = tmp_path / "out"
+    args = [
+        "custom",
+        str(capture),
+        "--out",
+        str(out),
+        "--preset",
+        "tiny",
+        "--template",
+        str(capture / "template.obj"),
+    ]
+    result = CliRunner().invoke(COMMANDS["ingest"], [*args, "--dry-run"])
+    assert result.exit_code == 0, result.output
+    assert "16 views" in result.output and "MB" in result.output and "dry run" in result.output
+    assert not out.exists()
+    result = CliRunner().invoke(COMMANDS["ingest"], [*args, "--subjects", "s2", "--cameras", "c0,c1,c2"])
+    assert result.exit_code == 0, result.output
+    assert "6 rows written, 0 quarantined" in result.output
+    missing = CliRunner().invoke(COMMANDS["ingest"], ["custom", str(tmp_path), "--out", str(out)])
+    assert missing.exit_code != 0 and "missing cameras.json" in missing.output
+
+
+def test_local_pool_gives_the_same_bytes_as_one_process(capture, tmp_path):
+    one = ingest(capture, tmp_path / "one", workers=1)
+    two = ingest(capture, tmp_path / "two", workers=2)
+    assert dataset_bytes(one.path) == dataset_bytes(two.path)
