@@ -38,6 +38,24 @@ def _frames(values: tuple[str, ...]) -> tuple[int, ...] | None:
         ) from None
 
 
+def _test_subjects(listed: tuple[str, ...], splits_file: Path | None) -> tuple[str, ...]:
+    """Held-out subjects from ``--test-subjects`` and a ``--splits`` JSON ({subject: "train" | "test"})."""
+    names = set(_names(listed) or ())
+    if splits_file is not None:
+        import json
+
+        try:
+            splits = json.loads(splits_file.read_text())
+        except (OSError, ValueError) as error:
+            raise click.BadParameter(f"{splits_file}: {error}", param_hint="--splits") from None
+        if not isinstance(splits, dict) or not all(isinstance(v, str) for v in splits.values()):
+            raise click.BadParameter(
+                f'{splits_file}: expected a JSON object {{"subject": "train" | "test"}}', param_hint="--splits"
+            )
+        names |= {subject for subject, split in splits.items() if split == "test"}
+    return tuple(sorted(names))
+
+
 def _adapter_command(command_name: str, module_name: str) -> click.Command:
     tracking_required = command_name != "custom"
 
@@ -76,6 +94,17 @@ def _adapter_command(command_name: str, module_name: str) -> click.Command:
         "--frames", multiple=True, help="Native frame numbers to keep (comma-separated or repeated)."
     )
     @click.option("--test-subjects", multiple=True, help="Subjects written with split 'test'.")
+    @click.option(
+        "--splits",
+        "splits_file",
+        type=click.Path(exists=True, dir_okay=False, path_type=Path),
+        default=None,
+        help='JSON {"subject": "train"|"test"} of a published protocol; its test subjects are held out.',
+    )
+    @click.option(
+        "--all-frames", is_flag=True, help="Every listed frame instead of the neutral one (Ava-256)."
+    )
+    @click.option("--sequence", default=None, help="Sequence to read (NeRSemble; default: the first).")
     @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True)
     @click.option("--executor", type=click.Choice(["local", "ray"]), default="local", show_default=True)
     @click.option(
@@ -92,6 +121,9 @@ def _adapter_command(command_name: str, module_name: str) -> click.Command:
         cameras,
         frames,
         test_subjects,
+        splits_file,
+        all_frames,
+        sequence,
         workers,
         executor,
         dry_run,
@@ -105,7 +137,9 @@ def _adapter_command(command_name: str, module_name: str) -> click.Command:
             subjects=_names(subjects),
             cameras=_names(cameras),
             frames=_frames(frames),
-            test_subjects=_names(test_subjects) or (),
+            test_subjects=_test_subjects(test_subjects, splits_file),
+            all_frames=all_frames,
+            sequence=sequence,
         )
         try:
             adapter.detect(src)

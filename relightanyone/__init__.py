@@ -12,3 +12,9 @@ try:
     __version__ = version("relightanyone")
 except PackageNotFoundError:  # running from a source tree that was never installed
     __version__ = "0.0.0+unknown"
+
+import warnings as _warnings
+
+# colour-science announces at import that its optional plotting API needs Matplotlib; nothing here plots
+# through it, so the notice is noise on every command.
+_warnings.filterwarnings("ignore", message='"Matplotlib" related API features are not available')

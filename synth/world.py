@@ -5,6 +5,7 @@
     out/faceolat/ ava256/ stereo_rig/ nersemble/     native datasets (D1..D4)
     out/tracking/<dataset>/<subject>/                VHAP-style tracking export (synth.vhap)
     out/tracking/template/                           the tracker's topology: template.obj (UVs), neck_mask.txt
+    out/splits/<native folder>.json                  published protocol: {subject: "train" | "test"}
     out/answers/                                     what ingest never reads and evaluation does
         template/                                    template.obj, neck_mask.txt, landmarks.json
         splits.json                                  {dataset: {subject: "train" | "test"}}
@@ -106,7 +107,7 @@ def prepare_output(out: Path, overwrite: bool) -> None:
             raise ValueError(
                 f"{out} is not empty; pass --overwrite to replace the world in it, or choose another --out"
             )
-        known = {*NATIVE_DIRS.values(), "tracking", "answers", "world.json"}
+        known = {*NATIVE_DIRS.values(), "tracking", "splits", "answers", "world.json"}
         strangers = sorted(p.name for p in out.iterdir() if p.name not in known)
         if strangers:
             raise ValueError(
@@ -345,6 +346,12 @@ def generate_world(
         jobs = [(out, preset, dataset, seed, template, lights, envmaps) for dataset in datasets]
         all_splits = dict(run_jobs(jobs, workers, bar))
         (answers / "splits.json").write_text(json.dumps(all_splits, indent=1, sort_keys=True))
+        # The published evaluation protocol (as real benchmarks publish their held-out subjects):
+        # which subjects are held out, and nothing about them. Ingest may read it (`--splits`).
+        for dataset, splits in all_splits.items():
+            protocol = out / "splits" / f"{NATIVE_DIRS[dataset]}.json"
+            protocol.parent.mkdir(parents=True, exist_ok=True)
+            protocol.write_text(json.dumps(splits, indent=1, sort_keys=True))
     finally:
         if bar is not None:
             bar.close()
