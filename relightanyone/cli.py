@@ -54,9 +54,9 @@ def _gather_commands() -> dict[str, click.Command]:
 def cli() -> None:
     """Relightable Gaussian head avatars from many multi-view capture datasets.
 
-    Every stage of the pipeline is a sub-command; run `relightanyone COMMAND --help` for its options.
-    Typical order: synth (or real downloads) -> ingest -> validate/inspect -> align -> train -> fit ->
-    expand/relight/export -> evaluate -> report; `run` executes a whole pipeline file.
+    Every stage of the pipeline is a sub-command listed below, in data-flow order; run
+    `relightanyone COMMAND --help` for its options. Real downloads (or a synthetic world) are ingested
+    into normalized datasets, checked, and used to train the model.
     """
 
 
