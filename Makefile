@@ -26,8 +26,7 @@ test: $(VENV)/.stamp-dev
 	$(PY) -m pytest -n 2 --dist loadfile $(PYTEST_ARGS)
 
 demo: $(VENV)/.stamp-dev
-	$(VENV)/bin/relightanyone synth --preset $(PRESET) --out $(DEMO_OUT)/world
-	$(VENV)/bin/relightanyone synth-preview $(DEMO_OUT)/world --out $(DEMO_OUT)/world-contact-sheet.png
+	$(VENV)/bin/relightanyone run pipelines/demo.yaml --var out=$(DEMO_OUT) --var preset=$(PRESET)
 
 bench: $(VENV)/.stamp-dev
 	$(PY) bench/loader.py

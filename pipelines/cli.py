@@ -1,0 +1,158 @@
+"""Commands of the pipelines layer: ``run`` (a pipeline file) and ``export-dataset``.
+
+Heavy imports stay inside the commands so that ``relightanyone --help`` stays instant.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+SHIPPED_PIPELINES = ("demo", "real")
+
+
+def _pipeline_path(value: str) -> Path:
+    """A pipeline file, or the name of one shipped with the package (``demo``, ``real``)."""
+    path = Path(value)
+    if path.is_file():
+        return path
+    if value in SHIPPED_PIPELINES:
+        return Path(__file__).resolve().parent / f"{value}.yaml"
+    raise click.BadParameter(
+        f"{value}: no such file (shipped pipelines: {', '.join(SHIPPED_PIPELINES)})", param_hint="PIPELINE"
+    )
+
+
+def _summary(results) -> list[str]:
+    width = max(len(r.stage) for r in results)
+    lines = [f"{'stage'.ljust(width)}  {'status':<12}  {'elapsed':>8}  reason"]
+    for result in results:
+        elapsed = f"{result.elapsed_s:7.1f}s" if result.status == "ran" else "       -"
+        lines.append(f"{result.stage.ljust(width)}  {result.status:<12}  {elapsed:>8}  {result.reason}")
+    return lines
+
+
+@click.command("run")
+@click.argument("pipeline", metavar="PIPELINE")
+@click.option(
+    "--var",
+    "variables",
+    multiple=True,
+    metavar="NAME=VALUE",
+    help="Override a variable of the file's vars: section (repeatable), e.g. --var out=/scratch/demo.",
+)
+@click.option(
+    "--force",
+    multiple=True,
+    metavar="STAGE",
+    help="Re-run this stage and everything downstream of it, even when up to date (repeatable).",
+)
+@click.option(
+    "--only",
+    multiple=True,
+    metavar="STAGE",
+    help="Run only these stages (repeatable); the stages they need must have completed before.",
+)
+@click.option(
+    "--dry-run", is_flag=True, help="Print which stages would run or be skipped, and why; run nothing."
+)
+@click.option(
+    "--quiet", is_flag=True, help="Do not stream the stages' own output (it is still in _stage.log)."
+)
+def run_command(
+    pipeline: str,
+    variables: tuple[str, ...],
+    force: tuple[str, ...],
+    only: tuple[str, ...],
+    dry_run: bool,
+    quiet: bool,
+) -> None:
+    """Run the staged pipeline in PIPELINE (a YAML file, or `demo` / `real` for the shipped ones).
+
+    Each stage writes OUTPUT/_stage.json when it succeeds and is skipped next time unless its config,
+    an input, the package version or its output files changed. An interrupted run is finished by running
+    the same command again. See docs/pipelines.md for the file format.
+    """
+    import sys
+
+    from .dag import StageFailed, execute, load_pipeline, plan
+    from .yaml_io import PipelineError, parse_var_overrides
+
+    try:
+        loaded = load_pipeline(_pipeline_path(pipeline), parse_var_overrides(variables))
+        if dry_run:
+            decisions = plan(loaded, force=force, only=only)
+            width = max(len(d.stage) for d in decisions)
+            for decision in decisions:
+                action = (
+                    "stop" if decision.reason.startswith("cannot run") else "run " if decision.run else "skip"
+                )
+                click.echo(f"{action}  {decision.stage.ljust(width)}  {decision.reason}")
+            click.echo(f"dry run: {sum(d.run for d in decisions)} of {len(decisions)} stage(s) would run")
+            blocked = [d.stage for d in decisions if d.reason.startswith("cannot run")]
+            if blocked:
+                raise click.ClickException(
+                    f"stage(s) {', '.join(blocked)} would stop the run: fix their inputs"
+                )
+            return
+        results = execute(
+            loaded,
+            force=force,
+            only=only,
+            echo=None if quiet else sys.stdout.buffer,
+            announce=lambda line: click.secho(line, bold=True),
+        )
+    except (PipelineError, StageFailed) as error:
+        raise click.ClickException(str(error)) from None
+    click.echo("\n".join(_summary(results)))
+
+
+@click.command("export-dataset")
+@click.argument("dataset", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option(
+    "--format",
+    "file_format",
+    type=click.Choice(["exr"]),
+    default="exr",
+    show_default=True,
+    help="Image file format (linear OpenEXR).",
+)
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Folder to write <subject>/<frame>/<camera>/<pattern>.exr, masks and the JSON tables into.",
+)
+@click.option(
+    "--precision",
+    type=click.Choice(["float", "half"]),
+    default="float",
+    show_default=True,
+    help="EXR pixel type: float keeps the decoded values exactly, half halves the size.",
+)
+@click.option(
+    "--subjects", multiple=True, help="Subjects to export (comma-separated or repeated; default all)."
+)
+def export_dataset_command(
+    dataset: Path, file_format: str, out: Path, precision: str, subjects: tuple[str, ...]
+) -> None:
+    """Write the normalized dataset DATASET as linear EXR images, mask PNGs, cameras.json and lights.json.
+
+    For tools outside this one: OUT/<subject>/<frame>/<camera>/<pattern>.exr and <pattern>.mask.png, one
+    cameras.json row per image (K, w2c, size, file names) and lights.json (the rig of an OLAT dataset).
+    """
+    from .export import ExportError, export_dataset
+
+    chosen = tuple(s.strip() for value in subjects for s in value.split(",") if s.strip()) or None
+    try:
+        summary = export_dataset(dataset, out, precision=precision, subjects=chosen, progress=True)
+    except ExportError as error:
+        raise click.ClickException(str(error)) from None
+    click.echo(
+        f"exported {summary['images']} image(s) of {summary['dataset']} to {out} "
+        f"({summary['subjects']} subject(s), {summary['lights']} light(s))"
+    )
+
+
+COMMANDS: dict[str, click.Command] = {"run": run_command, "export-dataset": export_dataset_command}
