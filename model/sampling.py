@@ -1,0 +1,99 @@
+"""Deterministic batch sampling and crops for stage-1 training.
+
+Every random choice of iteration ``t`` is drawn from a generator seeded with ``(seed, t, ...)``. The
+sampler therefore has no hidden state: its position is the iteration number, so resumed runs draw
+exactly the batches an uninterrupted run draws. Data-parallel processes draw the same *global* batch and
+each takes its own slice, and the crop of global sample ``j`` uses its own generator, so two processes
+with batch ``b`` see exactly the samples one process with batch ``2b`` sees.
+
+Balancing follows the paper: pick a dataset uniformly, then one of its training views uniformly, so a
+small dataset is seen as often as a large one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+BATCH_STREAM = 0
+CROP_STREAM = 1
+
+
+def iteration_generator(seed: int, iteration: int, stream: int, index: int = 0) -> np.random.Generator:
+    """The generator of one use (``stream``) at one iteration, for item ``index`` (e.g. a global sample)."""
+    return np.random.default_rng([int(seed), int(iteration), int(stream), int(index)])
+
+
+def balanced_batch(views_per_dataset: list[int], batch_size: int, seed: int, iteration: int) -> list[tuple[int, int]]:
+    """``batch_size`` pairs (dataset index, view index within that dataset): the global batch of one iteration.
+
+    Datasets are drawn uniformly (with replacement), then a view uniformly within the dataset.
+    """
+    if not views_per_dataset or min(views_per_dataset) <= 0:
+        raise ValueError(f"every dataset needs at least one training view, got counts {views_per_dataset}")
+    rng = iteration_generator(seed, iteration, BATCH_STREAM)
+    datasets = rng.integers(0, len(views_per_dataset), size=batch_size)
+    return [(int(d), int(rng.integers(0, views_per_dataset[d]))) for d in datasets]
+
+
+@dataclass(frozen=True)
+class CropBox:
+    """A crop window in stored-image pixels; may extend past the image (padded with zeros, mask 0)."""
+
+    x0: int
+    y0: int
+    size: int
+
+
+def choose_crop(mask: np.ndarray, size: int, rng: np.random.Generator) -> CropBox:
+    """A ``size``×``size`` window centred on a random foreground pixel, kept inside the image when the
+    image is large enough (otherwise centred on the image, padded).
+
+    mask: (H, W) float or bool foreground.
+    """
+    height, width = mask.shape
+    foreground = np.flatnonzero(np.asarray(mask) > 0.5)
+    if foreground.size:
+        centre = int(foreground[rng.integers(0, foreground.size)])
+        cy, cx = divmod(centre, width)
+    else:
+        cy, cx = height // 2, width // 2
+
+    def place(centre: int, extent: int) -> int:
+        if extent <= size:
+            return (extent - size) // 2
+        return int(np.clip(centre - size // 2, 0, extent - size))
+
+    return CropBox(x0=place(cx, width), y0=place(cy, height), size=size)
+
+
+def crop_array(array: np.ndarray, box: CropBox) -> np.ndarray:
+    """Crop (C, H, W) to (C, size, size), filling the part outside the image with zeros."""
+    channels, height, width = array.shape
+    out = np.zeros((channels, box.size, box.size), dtype=array.dtype)
+    src_x0, src_y0 = max(box.x0, 0), max(box.y0, 0)
+    src_x1, src_y1 = min(box.x0 + box.size, width), min(box.y0 + box.size, height)
+    if src_x1 > src_x0 and src_y1 > src_y0:
+        out[:, src_y0 - box.y0 : src_y1 - box.y0, src_x0 - box.x0 : src_x1 - box.x0] = array[
+            :, src_y0:src_y1, src_x0:src_x1
+        ]
+    return out
+
+
+def crop_intrinsics(K: np.ndarray, box: CropBox) -> np.ndarray:
+    """K (3, 3) of the stored image -> K of the crop (principal point shifted by the crop origin)."""
+    cropped = np.array(K, dtype=np.float64, copy=True)
+    cropped[0, 2] -= box.x0
+    cropped[1, 2] -= box.y0
+    return cropped
+
+
+def held_out_cameras(cameras: list[str], count: int) -> set[str]:
+    """``count`` cameras spread evenly over the sorted camera names, never all of them."""
+    ordered = sorted(set(cameras))
+    count = min(count, len(ordered) - 1)
+    if count <= 0:
+        return set()
+    step = len(ordered) / count
+    return {ordered[int(i * step + step / 2)] for i in range(count)}

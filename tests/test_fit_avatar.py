@@ -1,0 +1,311 @@
+"""Fitting an unseen subject (inversion, finetuning with the locality regulariser) and the avatar file.
+
+The world: an OLAT dataset of Lambertian spheres (the stage-1 test template) under a four-light rig, seen
+by four cameras. Subjects s00 and s01 are training subjects; s02 (a larger, differently coloured sphere,
+split "test") is never trained on and is fitted from its images under an unknown lighting: the rig with
+other RGB intensities per light.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from relightanyone.model.avatar import FittedAvatar
+from relightanyone.model.fit import (
+    FitSettings,
+    Fitter,
+    decode_codes,
+    fit_subject,
+    load_fit_views,
+    load_relightable_model,
+    locality_codes,
+    locality_loss,
+    scale_intrinsics,
+)
+from relightanyone.model.presets import get_stage2_preset
+from relightanyone.model.stage1 import Stage1Config, train_stage1
+from relightanyone.model.stage2_train import Stage2Config, train_stage2
+from relightanyone.render.camera import Cameras
+from relightanyone.render.lights import PointLights
+from stage1_world import RADIUS, sphere_obj, tiny_stage1_preset
+
+from relightanyone.format.codecs import encode_image, encode_mask
+from relightanyone.format.examples import look_at_w2c
+from relightanyone.format.schema import (
+    DatasetInfo,
+    LightRow,
+    MeshRow,
+    Provenance,
+    build_image_row,
+    fingerprint_config,
+)
+from relightanyone.format.shards import ShardWriter
+
+SIZE = 24
+LIGHTS = np.array([[0.8, 0.4, 0.6], [-0.8, 0.3, 0.6], [0.0, 0.9, 0.5], [0.0, -0.5, 0.9]])
+RIG_INTENSITY = 2.5
+# The unseen subject's lighting: the rig's lights with other RGB intensities (light 1 nearly off).
+SCENE_INTENSITIES = np.array([[4.0, 3.0, 2.0], [0.2, 0.2, 0.3], [2.0, 2.5, 3.0], [1.0, 1.0, 1.0]])
+SUBJECTS = {"s00": (1.0, (0.7, 0.5, 0.4), "train"), "s01": (1.0, (0.4, 0.6, 0.8), "train"),
+            "s02": (1.15, (0.8, 0.45, 0.3), "test")}
+
+
+def _lambert_sphere(scale, albedo, K, w2c, positions, intensities):
+    """Ray-cast the sphere of radius RADIUS·scale at the origin under point lights: (image (H, W, 3), mask)."""
+    c2w = np.linalg.inv(w2c)
+    y, x = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+    rays = np.stack([(x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1], np.ones_like(x)], -1) @ c2w[:3, :3].T
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    origin = c2w[:3, 3]
+    b = rays @ origin
+    disc = b**2 - (origin @ origin - (RADIUS * scale) ** 2)
+    mask = disc > 0
+    points = origin + (-b - np.sqrt(np.clip(disc, 0, None)))[..., None] * rays
+    normals = points / (RADIUS * scale)
+    radiance = np.zeros((*mask.shape, 3))
+    for position, intensity in zip(positions, intensities, strict=True):
+        offset = position - points
+        cosine = np.clip((normals * offset).sum(-1), 0, None) / (offset**2).sum(-1) ** 1.5
+        radiance += np.asarray(intensity) * cosine[..., None]
+    image = np.where(mask[..., None], np.asarray(albedo) / np.pi * radiance, 0.0).astype(np.float32)
+    return image, mask
+
+
+def _write_world(root: Path) -> Path:
+    vertices, obj_text = sphere_obj()
+    folder = root / "olat"
+    info = DatasetInfo(name="olat", kind="olat", template_mesh_id="sphere", lighting="4-light OLAT rig + full-on",
+                       provenance=Provenance(source_dataset="fit test sphere world", licence="CC0"),
+                       config_fingerprint=fingerprint_config({"name": "fit-world"}))
+    writer = ShardWriter(folder, info)
+    writer.begin()
+    writer.write_lights([LightRow(index=k, name=f"L{k}", position_m=tuple(p), intensity_rgb=(RIG_INTENSITY,) * 3,
+                                  pattern=f"olat-{k:03d}") for k, p in enumerate(LIGHTS)])
+    K = np.array([[2.2 * SIZE, 0, (SIZE - 1) / 2], [0, 2.2 * SIZE, (SIZE - 1) / 2], [0, 0, 1.0]])
+    rig = np.full((4, 3), RIG_INTENSITY)
+    for subject, (scale, albedo, split) in SUBJECTS.items():
+        with writer.part(subject) as part:
+            part.add_mesh(MeshRow(subject=subject, frame=0, vertices=(vertices * scale).astype(np.float32)))
+            for c in range(4):
+                angle = 0.5 * (c - 1.5)
+                w2c = look_at_w2c(0.5 * np.array([np.sin(angle), 0.1, np.cos(angle)]))
+                if split == "train":
+                    patterns = {"full": (LIGHTS, rig)} | {f"olat-{k:03d}": (LIGHTS[k : k + 1], rig[k : k + 1]) for k in range(4)}
+                else:
+                    patterns = {"full": (LIGHTS, SCENE_INTENSITIES)}
+                for pattern, (positions, intensities) in patterns.items():
+                    image, mask = _lambert_sphere(scale, albedo, K, w2c, positions, intensities)
+                    source = f"{subject}/{pattern}/cam{c:02d}.exr"
+                    part.add(build_image_row(
+                        dataset="olat", subject=subject, frame=0, camera=f"cam{c:02d}", pattern=pattern, split=split,
+                        K=K, w2c=w2c, image=encode_image(image), image_encoding="raw-f16", mask=encode_mask(mask),
+                        width=SIZE, height=SIZE, source=source, source_sha256=hashlib.sha256(source.encode()).hexdigest(),
+                    ))
+    writer.commit()
+    (folder / "template.obj").write_text(obj_text)
+    return folder
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """These tensors are tiny: intra-op threads only add synchronisation, which dominates on a busy machine."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory) -> dict[str, Path]:
+    """The dataset, a stage-1 run on its training subjects and a stage-2 run on top."""
+    root = tmp_path_factory.mktemp("fit-world")
+    data = _write_world(root)
+    stage1 = root / "stage1"
+    train_stage1(Stage1Config([data], stage1, tiny_stage1_preset(iterations=6, crop_size=SIZE, held_out_cameras=0),
+                              progress=False, evaluate=False))
+    stage2_preset = get_stage2_preset("tiny").replace(
+        sh_order=2, base_channels=8, max_channels=16, crop_size=SIZE, batch_size=2, iterations=4,
+        normal_anneal_iterations=2, albedo_anneal_iterations=2, checkpoint_every=4, log_every=2, learning_rate=5e-3)
+    stage2 = root / "stage2"
+    train_stage2(Stage2Config(data, stage2, stage2_preset, stage1_run=stage1, progress=False))
+    return {"data": data, "stage1": stage1, "stage2": stage2, "root": root}
+
+
+def _fitter(world, **settings) -> Fitter:
+    model = load_relightable_model(world["stage1"], world["stage2"])
+    views = load_fit_views(world["data"], "s02")
+    defaults = dict(inversion_iterations=0, finetune_iterations=0, inversion_lr=5e-2, finetune_lr=3e-3,
+                    views_per_step=2, progress=False)
+    return Fitter(model, views, FitSettings(**(defaults | settings)))
+
+
+@pytest.fixture(scope="module")
+def avatar(world) -> FittedAvatar:
+    settings = FitSettings(inversion_iterations=4, finetune_iterations=2, views_per_step=2, progress=False)
+    return fit_subject(world["stage1"], world["stage2"], world["data"], "s02", settings=settings,
+                       out=world["root"] / "s02.avatar")
+
+
+def test_views_of_an_unseen_subject_are_read_with_cameras_and_tracked_mesh(world):
+    views = load_fit_views(world["data"], "s02", cameras=["cam02"])
+    assert len(views) == 1 and views.images.shape == (1, 3, SIZE, SIZE) and views.masks.shape == (1, 1, SIZE, SIZE)
+    assert views.tracked_vertices is not None and views.frame == 0 and views.keys == ["olat/s02/000000/cam02/full"]
+    half = load_fit_views(world["data"], "s02", image_scale=0.5)
+    assert half.images.shape == (4, 3, SIZE // 2, SIZE // 2)
+    # Pixel centres stay put: c' = (c + 0.5) s - 0.5.
+    assert float(half.K[0, 0, 2]) == pytest.approx(((SIZE - 1) / 2 + 0.5) * 0.5 - 0.5)
+    assert float(half.K[0, 0, 0]) == pytest.approx(2.2 * SIZE * 0.5)
+    np.testing.assert_allclose(scale_intrinsics(np.eye(3) * 10, 2.0)[0, 0], 20.0)
+    with pytest.raises(ValueError, match="no subject 'nobody'"):
+        load_fit_views(world["data"], "nobody")
+    with pytest.raises(ValueError, match="no camera"):
+        load_fit_views(world["data"], "s02", cameras=["cam99"])
+    with pytest.raises(ValueError, match="no rows with pattern 'olat-000'"):
+        load_fit_views(world["data"], "s02", pattern="olat-000")
+
+
+def test_inversion_starts_at_the_mean_code_and_lowers_the_photometric_loss(world):
+    fitter = _fitter(world)
+    model = fitter.model
+    assert torch.equal(fitter.z_id.detach()[0], model.stage1.identity_codes.detach().mean(dim=0))
+    assert torch.equal(fitter.light_intensities().detach(), model.rig.intensities)
+    weights_before = {k: v.clone() for k, v in model.stage1.state_dict().items()}
+    before = fitter.evaluate()
+    fitter.invert(8)
+    after = fitter.evaluate()
+    assert after["l1"] < 0.8 * before["l1"], (before, after)
+    assert not torch.equal(fitter.z_id.detach()[0], model.stage1.identity_codes.detach().mean(dim=0))
+    # Inversion moves only the code and the lighting: no stage-1 or stage-2 weight changes.
+    assert all(torch.equal(v, fitter.stage1.state_dict()[k]) for k, v in weights_before.items())
+    assert all(not p.requires_grad for p in fitter.stage2.parameters())
+
+
+def test_every_rig_light_intensity_gets_a_gradient(world):
+    fitter = _fitter(world)
+    total, terms = fitter.inversion_loss(list(range(len(fitter.views))))
+    total.backward()
+    gradient = fitter.log_intensities.grad
+    assert gradient is not None and gradient.shape == (4, 3)
+    assert bool((gradient.abs() > 0).all()), gradient
+    assert fitter.z_id.grad is not None and float(fitter.z_id.grad.abs().sum()) > 0
+    assert {"l1", "ssim", "geometry", "identity", "total"} <= set(terms)
+    # The lights move away from the calibrated rig towards the scene lighting (light 1 is dimmed most).
+    fitter.invert(4)
+    intensities = fitter.light_intensities().detach()
+    assert not torch.allclose(intensities, fitter.model.rig.intensities)
+
+
+def _finetuned(world, locality_weight: float) -> tuple[Fitter, float, float]:
+    """Finetune from the same inversion; returns the fitter, its weight change and its change on training codes."""
+    fitter = _fitter(world, locality_codes=2)
+    fitter.invert(3)
+    initial = [p.detach().clone() for p in fitter.decoder_parameters()]
+    fitter.finetune(8, locality_weight=locality_weight)
+    weight_change = float(torch.sqrt(sum(((p.detach() - q) ** 2).sum() for p, q in zip(fitter.decoder_parameters(), initial, strict=True))))
+    codes = fitter.model.training_codes
+    z_l = fitter.z_l.expand(codes.shape[0], -1)
+    with torch.no_grad():
+        change = float(locality_loss(decode_codes(fitter.stage1, codes, z_l), decode_codes(fitter.reference, codes, z_l),
+                                     fitter.spacing).mean())
+    return fitter, weight_change, change
+
+
+def test_locality_regulariser_keeps_finetuning_local(world):
+    free, free_weights, free_change = _finetuned(world, 0.0)
+    local, local_weights, local_change = _finetuned(world, 1.0)
+    assert "locality" in local.history["finetune"][-1] and "locality" not in free.history["finetune"][-1]
+    assert local_weights < free_weights, (local_weights, free_weights)
+    assert local_change < free_change, (local_change, free_change)
+    # Finetuning froze the pivot and stage 2, and left the reference (the loaded model) untouched.
+    assert not local.z_id.requires_grad and not local.log_intensities.requires_grad
+    assert local.reference is local.model.stage1 and all(not p.requires_grad for p in local.reference.parameters())
+
+
+def test_avatar_save_load_round_trip_renders_identical_images(world, avatar, tmp_path):
+    path = world["root"] / "s02.avatar"
+    assert path.is_file() and not list(path.parent.glob(".*.tmp"))
+    loaded = FittedAvatar.load(path)
+    assert loaded.metadata["subject"] == "s02" and loaded.metadata["iterations"] == {"inversion": 4, "finetune": 2}
+    assert loaded.metadata["mesh"] == "tracked" and loaded.tracked_vertices is not None
+    cameras = _cameras(world)
+    for lighting in (avatar.scene_lights(), avatar.olat(2)):
+        assert torch.equal(avatar.relight(cameras, lighting), loaded.relight(cameras, lighting))
+    assert torch.equal(loaded.scene_intensities, avatar.scene_intensities)
+    assert torch.equal(loaded.to("cpu").relight(cameras, avatar.olat(1)), avatar.relight(cameras, avatar.olat(1)))
+    (tmp_path / "bad.avatar").write_bytes(b"not a torch file")
+    with pytest.raises(ValueError, match="bad.avatar"):
+        FittedAvatar.load(tmp_path / "bad.avatar")
+    with pytest.raises(FileNotFoundError, match="missing.avatar"):
+        FittedAvatar.load(tmp_path / "missing.avatar")
+
+
+def _cameras(world) -> Cameras:
+    views = load_fit_views(world["data"], "s02")
+    return Cameras.create(views.K.double(), views.w2c.double(), SIZE, SIZE)
+
+
+def test_olat_light_and_point_light_at_the_same_position_give_the_same_image(world, avatar):
+    cameras = _cameras(world)
+    olat = avatar.relight(cameras, avatar.olat(0))
+    point = avatar.relight(cameras, PointLights(torch.tensor(LIGHTS[:1], dtype=torch.float32),
+                                                torch.full((1, 3), RIG_INTENSITY)))
+    assert olat.shape == (4, 3, SIZE, SIZE) and float(olat.max()) > 0
+    torch.testing.assert_close(olat, point, rtol=0, atol=1e-6)
+    # Linearity through the whole path: twice the intensity, twice the image.
+    doubled = avatar.relight(cameras, avatar.olat(0).scaled(2.0))
+    torch.testing.assert_close(doubled, 2 * olat, rtol=1e-4, atol=1e-6)
+    relit = avatar.gaussians(avatar.olat(0), cameras[0])
+    assert set(relit) == {"means", "quats", "scales", "opacities", "colours"}
+    assert relit["colours"].shape == (avatar.gaussian_count, 3) and bool((relit["colours"] >= 0).all())
+
+
+def test_envmap_relight_from_an_exr_file(world, avatar, tmp_path):
+    from relightanyone.render.envmap import latlong_directions, save_envmap
+
+    directions = latlong_directions(16, 32)
+    # A warm sky in front of the face over a dim ambient.
+    env = 0.05 + 2.0 * (directions[..., 2].clamp(min=0) ** 4)[None] * torch.tensor([1.0, 0.8, 0.6])[:, None, None]
+    path = tmp_path / "studio.exr"
+    save_envmap(path, env)
+    cameras = _cameras(world)
+    lit = avatar.relight(cameras, path)
+    assert lit.shape == (4, 3, SIZE, SIZE) and bool(torch.isfinite(lit).all()) and float(lit.min()) >= 0
+    assert float(lit.mean()) > 0
+    dark = avatar.relight(cameras, torch.zeros(3, 16, 32))
+    assert float(dark.abs().max()) == 0.0
+    brighter = avatar.relight(cameras, 2 * env)
+    assert float(brighter.sum()) > float(lit.sum())
+    with pytest.raises(ValueError, match="environment map"):
+        avatar.relight(cameras, torch.zeros(16, 32))
+
+
+def test_locality_codes_lie_between_the_fit_and_training_codes():
+    fitted = torch.zeros(1, 3)
+    training = torch.tensor([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    codes = locality_codes(fitted, training, 64, 0.5, np.random.default_rng(0))
+    assert codes.shape == (64, 3)
+    # Every code is t · (a training code) with t in [0.5, 1]: on one axis, between half and all of it.
+    on_first = codes[:, 1] == 0
+    assert bool(on_first.any()) and bool((~on_first).any())
+    assert bool(((codes[on_first, 0] >= 0.5) & (codes[on_first, 0] <= 1.0)).all())
+    assert bool(((codes[~on_first, 1] >= 1.0) & (codes[~on_first, 1] <= 2.0)).all())
+    assert torch.equal(codes, locality_codes(fitted, training, 64, 0.5, np.random.default_rng(0)))
+    with pytest.raises(ValueError, match="locality_min_fraction"):
+        FitSettings(locality_min_fraction=1.5)
+
+
+def test_single_image_fit_without_a_tracked_mesh(world):
+    model = load_relightable_model(world["stage1"], world["stage2"])
+    views = load_fit_views(world["data"], "s02", cameras=["cam01"])
+    views.tracked_vertices = None
+    fitter = Fitter(model, views, FitSettings(inversion_iterations=2, finetune_iterations=1, progress=False))
+    fitter.invert()
+    fitter.finetune()
+    assert "geometry" not in fitter.history["inversion"][-1] and "locality" in fitter.history["finetune"][-1]
+    single = fitter.avatar()
+    assert single.metadata["mesh"] == "decoded" and single.tracked_vertices is None
+    assert single.metadata["cameras"] == ["cam01"] and single.means.shape == (model.stage1.binding.count, 3)

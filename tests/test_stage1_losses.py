@@ -1,0 +1,138 @@
+"""Stage-1 losses, metrics, schedules, sampling and crops."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from relightanyone.model.colour_align import colour_cast_error, correction_from_render_matrix
+from relightanyone.model.gaussians import MAX_SCALE, MIN_SCALE
+from relightanyone.model.losses import (
+    masked_l1,
+    masked_psnr,
+    masked_ssim,
+    offset_l2,
+    offset_weight,
+    scale_bound_loss,
+    vertex_l2,
+)
+from relightanyone.model.memory import estimate_training_memory
+from relightanyone.model.presets import LossWeights, get_preset
+from relightanyone.model.sampling import (
+    balanced_batch,
+    choose_crop,
+    crop_array,
+    crop_intrinsics,
+    held_out_cameras,
+    iteration_generator,
+)
+
+
+def test_image_losses_only_count_masked_pixels():
+    target = torch.rand(2, 3, 24, 24)
+    mask = torch.zeros(2, 1, 24, 24)
+    mask[:, :, 4:20, 4:20] = 1
+    render = target.clone()
+    render[:, :, :4] += 5.0  # wrong only outside the mask
+    assert torch.allclose(masked_l1(render, target, mask), torch.zeros(2))
+    assert masked_psnr(render, target, mask) == math.inf
+    render_inside = target.clone()
+    render_inside[0, :, 8:12, 8:12] += 0.5
+    l1 = masked_l1(render_inside, target, mask)
+    assert l1[0] == pytest.approx(0.5 * 16 / 256, rel=1e-5) and l1[1] == 0
+    ssim = masked_ssim(render_inside, target, mask)
+    assert ssim[1] == pytest.approx(1.0, abs=1e-4) and ssim[0] < 0.99
+    with pytest.raises(ValueError, match="mask must be"):
+        masked_l1(render, target, mask[:, :, :10])
+
+
+def test_psnr_matches_the_definition():
+    target = torch.zeros(1, 3, 8, 8)
+    render = torch.full((1, 3, 8, 8), 0.1)
+    assert masked_psnr(render, target, torch.ones(1, 1, 8, 8)) == pytest.approx(20.0, abs=1e-4)
+
+
+def test_geometry_and_regularisers():
+    tracked = torch.zeros(2, 5, 3)
+    decoded = tracked.clone()
+    decoded[..., 0] = 0.002  # 2 mm
+    assert torch.allclose(vertex_l2(decoded, tracked), torch.full((2,), 4.0))
+    assert torch.allclose(vertex_l2(decoded, tracked, torch.tensor([1.0, 0.0])), torch.tensor([4.0, 0.0]))
+    inside = torch.full((1, 4, 3), 1.0)
+    assert scale_bound_loss(inside).item() == 0
+    small = torch.full((1, 4, 3), MIN_SCALE / 2)
+    assert scale_bound_loss(small).item() == pytest.approx(2 / MIN_SCALE)
+    large = torch.full((1, 4, 3), MAX_SCALE + 3)
+    assert scale_bound_loss(large).item() == pytest.approx(9.0)
+    assert offset_l2(torch.ones(1, 4, 3)).item() == pytest.approx(3.0)
+
+
+def test_offset_weight_anneals_log_linearly_from_one_to_a_thousandth():
+    weights = LossWeights()
+    assert offset_weight(0, weights, 100) == pytest.approx(1.0)
+    assert offset_weight(50, weights, 100) == pytest.approx(math.sqrt(1e-3))
+    assert offset_weight(100, weights, 100) == pytest.approx(1e-3)
+    assert offset_weight(10_000, weights, 100) == pytest.approx(1e-3)
+    paper = get_preset("paper")
+    assert paper.offset_anneal_iterations < paper.iterations
+
+
+def test_balanced_batches_sample_datasets_uniformly_and_deterministically():
+    counts = [1000, 10, 3]
+    picks = [d for t in range(300) for d, _ in balanced_batch(counts, 4, seed=7, iteration=t)]
+    share = np.bincount(picks, minlength=3) / len(picks)
+    assert np.all(np.abs(share - 1 / 3) < 0.05)
+    assert all(v < counts[d] for t in range(50) for d, v in balanced_batch(counts, 4, 7, t))
+    assert balanced_batch(counts, 4, 7, 12) == balanced_batch(counts, 4, 7, 12)
+    assert balanced_batch(counts, 4, 7, 12) != balanced_batch(counts, 4, 7, 13)
+    with pytest.raises(ValueError, match="at least one training view"):
+        balanced_batch([5, 0], 2, 0, 0)
+
+
+def test_crops_keep_projection_consistent_and_pad_small_images():
+    mask = np.zeros((40, 60), np.float32)
+    mask[10:30, 30:50] = 1
+    box = choose_crop(mask, 16, iteration_generator(0, 3, 1))
+    assert 0 <= box.x0 <= 60 - 16 and 0 <= box.y0 <= 40 - 16
+    K = np.array([[50.0, 0, 29.5], [0, 50.0, 19.5], [0, 0, 1]])
+    point = np.array([0.1, -0.05, 1.0])
+    u, v, _ = K @ point
+    uc, vc, _ = crop_intrinsics(K, box) @ point
+    assert (uc, vc) == pytest.approx((u - box.x0, v - box.y0))
+    image = np.arange(2 * 40 * 60, dtype=np.float32).reshape(2, 40, 60)
+    cropped = crop_array(image, box)
+    assert np.array_equal(cropped, image[:, box.y0 : box.y0 + 16, box.x0 : box.x0 + 16])
+    padded_box = choose_crop(np.ones((8, 8)), 12, iteration_generator(0, 0, 1))
+    padded = crop_array(np.ones((1, 8, 8), np.float32), padded_box)
+    assert padded.shape == (1, 12, 12) and padded.sum() == 64
+
+
+def test_held_out_cameras_are_spread_and_never_all():
+    cameras = [f"cam{i:02d}" for i in range(8)]
+    aside = held_out_cameras(cameras, 2)
+    assert len(aside) == 2 and aside <= set(cameras)
+    assert held_out_cameras(["a"], 3) == set()
+    assert len(held_out_cameras(["a", "b"], 5)) == 1
+
+
+def test_colour_cast_error_is_zero_for_the_true_cast_and_gain_free():
+    cast = np.array([[1.1, 0.05, 0.0], [0.0, 0.95, 0.02], [0.03, 0.0, 0.8]])
+    exact = colour_cast_error(cast, [cast, cast])
+    assert exact["relative_error"] == pytest.approx(0, abs=1e-12)
+    assert exact["identity_baseline_relative_error"] > 0.1
+    scaled = colour_cast_error(2 * cast, [cast])
+    assert scaled["relative_error_after_gain"] == pytest.approx(0, abs=1e-12)
+    assert scaled["residual_cast_max_offdiagonal_or_ratio"] == pytest.approx(0, abs=1e-12)
+    assert np.allclose(correction_from_render_matrix(cast) @ cast, np.eye(3))
+    with pytest.raises(ValueError, match="singular"):
+        correction_from_render_matrix(np.zeros((3, 3)))
+
+
+def test_memory_estimate_grows_with_the_preset():
+    tiny = estimate_training_memory(get_preset("tiny"), 1_000_000, 3000)
+    paper = estimate_training_memory(get_preset("paper"), 200_000_000, 700_000)
+    assert tiny["total"] == sum(v for k, v in tiny.items() if k != "total")
+    assert paper["total"] > 10 * tiny["total"]
+    assert paper["optimizer_state"] == 2 * 200_000_000 * 4

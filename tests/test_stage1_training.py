@@ -1,0 +1,168 @@
+"""Stage-1 training end to end on a tiny sphere world: run folder, held-out metrics, exact resume after
+SIGKILL, data-parallel training with two gloo processes, colour warm-up, and the render command."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+from relightanyone.model.checkpoint import load_checkpoint
+from relightanyone.model.cli import COMMANDS
+from relightanyone.model.data import Stage1Data
+from relightanyone.model.evaluate import evaluate_held_out
+from relightanyone.model.stage1 import Stage1Config, build_model, train_stage1
+from stage1_world import tiny_stage1_preset, train_script, write_dataset
+
+CAST = np.array([[1.3, 0.1, 0.0], [0.0, 0.9, 0.0], [0.0, 0.05, 0.6]])
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """One torch thread: the suite runs two workers on two cores, and spinning OpenMP threads of
+    oversubscribed processes slow every step tenfold."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory) -> list[Path]:
+    root = tmp_path_factory.mktemp("sphere-world")
+    return [write_dataset(root, "da", seed=0), write_dataset(root, "db", cast=CAST, seed=1)]
+
+
+@pytest.fixture(scope="module")
+def trained_run(world, tmp_path_factory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("run") / "stage1"
+    preset = tiny_stage1_preset(iterations=20, checkpoint_every=10, image_every=10)
+    metrics = train_stage1(Stage1Config(world, out, preset, progress=False))
+    return out, metrics
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["OMP_NUM_THREADS"] = "1"  # two processes on two cores
+    return env
+
+
+def test_training_writes_a_run_and_beats_the_untrained_model(world, trained_run):
+    out, metrics = trained_run
+    for name in ("checkpoint.pt", "run.json", "metrics.json", "template.obj"):
+        assert (out / name).is_file(), name
+    assert any((out / "tensorboard").iterdir())
+    info = json.loads((out / "run.json").read_text())
+    assert info["subjects"] == ["da/s00", "da/s01", "db/s00", "db/s01"]
+    assert load_checkpoint(out / "checkpoint.pt")["iteration"] == 20
+    assert set(metrics["held_out"]) == {"da", "db"} and metrics["seconds_per_iteration"] > 0
+    data = Stage1Data(world, held_out_per_subject=1)
+    torch.manual_seed(0)
+    untrained = evaluate_held_out(build_model(tiny_stage1_preset(), data, (), data.template_path), data)
+    for name in ("da", "db"):
+        assert metrics["held_out"][name]["psnr"] > untrained[name]["psnr"] + 1.0, (metrics, untrained)
+
+
+def test_resume_refuses_a_different_architecture(world, trained_run):
+    out, _ = trained_run
+    with pytest.raises(ValueError, match="other settings"):
+        train_stage1(Stage1Config(world, out, tiny_stage1_preset(z_id_dim=12, iterations=21), progress=False))
+
+
+def test_sigkill_then_resume_gives_the_uninterrupted_weights(world, tmp_path):
+    settings = dict(iterations=10, checkpoint_every=2)
+    reference, interrupted = tmp_path / "reference", tmp_path / "interrupted"
+    subprocess.run([sys.executable, "-c", train_script(world, reference, **settings)], check=True, env=_env(), timeout=240)
+    process = subprocess.Popen([sys.executable, "-c", train_script(world, interrupted, **settings)], env=_env())
+    deadline = time.monotonic() + 180
+    checkpoint = interrupted / "checkpoint.pt"
+    while time.monotonic() < deadline and process.poll() is None:
+        if checkpoint.is_file() and load_checkpoint(checkpoint)["iteration"] >= 2:
+            break
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    killed_at = load_checkpoint(checkpoint)["iteration"]
+    assert killed_at < 10, "the run finished before it could be killed"
+    subprocess.run([sys.executable, "-c", train_script(world, interrupted, **settings)], check=True, env=_env(), timeout=240)
+    expected = load_checkpoint(reference / "checkpoint.pt")
+    resumed = load_checkpoint(checkpoint)
+    assert resumed["iteration"] == expected["iteration"] == 10
+    for name, tensor in expected["model"].items():
+        assert torch.equal(tensor, resumed["model"][name]), name
+
+
+def test_torchrun_two_gloo_processes_average_gradients(world, tmp_path):
+    ddp, single = tmp_path / "ddp", tmp_path / "single"
+    script = tmp_path / "train.py"
+    script.write_text(train_script(world, ddp, iterations=3, batch_size=1))
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", str(script)]
+    subprocess.run(command, check=True, env=_env(), timeout=240)
+    metrics = json.loads((ddp / "metrics.json").read_text())
+    assert metrics["processes"] == 2 and metrics["processes_in_sync"]
+    # Two processes with batch 1 see exactly the samples of one process with batch 2.
+    train_stage1(Stage1Config(world, single, tiny_stage1_preset(iterations=3, batch_size=2), progress=False, evaluate=False))
+    parallel, serial = load_checkpoint(ddp / "checkpoint.pt")["model"], load_checkpoint(single / "checkpoint.pt")["model"]
+    initial = build_model(tiny_stage1_preset(), Stage1Data(world, 1), (), world[0] / "template.obj").state_dict()
+    assert not torch.equal(serial["identity_codes"], initial["identity_codes"])
+    # Adam's first steps move each weight by about ±lr whatever the gradient's size, so the few weights
+    # whose gradient is ~0 may take either sign from rounding; all others must agree.
+    agreeing = sum(int(torch.isclose(parallel[n], t, atol=1e-5, rtol=1e-4).sum()) for n, t in serial.items())
+    total = sum(t.numel() for t in serial.values())
+    assert agreeing >= 0.999 * total, f"{total - agreeing} of {total} weights differ"
+
+
+def test_colour_warmup_stores_the_inverse_matrix_and_the_loader_applies_it(world, tmp_path):
+    from relightanyone.align.colour import read_learned_colour_matrix
+    from relightanyone.model.colour_align import run_colour_warmup
+
+    metrics = run_colour_warmup(world, tmp_path / "run", tiny_stage1_preset(warmup_iterations=6), ("db",), progress=False)
+    learned = np.asarray(metrics["colour_matrices"]["db"])
+    assert not np.allclose(learned, np.eye(3)), "the warm-up did not update the colour matrix"
+    stored = read_learned_colour_matrix(world[1])
+    try:
+        assert read_learned_colour_matrix(world[0]) is None
+        assert np.allclose(stored @ learned, np.eye(3), atol=1e-6)
+        assert {"held_out", "held_out_with_colour_matrix"} <= set(metrics)
+        raw = Stage1Data(world, 1, apply_learned_colour=False)
+        aligned = Stage1Data(world, 1)
+        view = aligned.train_views[1][0]
+        expected = np.einsum("ij,jhw->ihw", stored, raw.load_view(view)["image"])
+        assert np.allclose(aligned.load_view(view)["image"], expected, atol=1e-5)
+    finally:
+        (world[1] / "colour_alignment.json").unlink()
+
+
+def test_render_command_swaps_lighting_codes_without_moving_geometry(trained_run, tmp_path):
+    out, _ = trained_run
+    runner = CliRunner()
+    result = runner.invoke(COMMANDS["render"], ["stage1", str(out), "--subject", "da/s01", "--lighting-code", "db",
+                                                "--lighting-grid", "--out", str(tmp_path / "png")])
+    assert result.exit_code == 0, result.output
+    report = json.loads((tmp_path / "png" / "render_report.json").read_text())["subject"]
+    assert report["geometry_identical"] is True
+    assert report["mean_colour_shift_norm"] > 0
+    assert len(report["files"]) == 4 and all(Path(f).is_file() for f in report["files"])
+    assert (tmp_path / "png" / "lighting_grid.png").is_file()
+    orbit = runner.invoke(COMMANDS["render"], ["stage1", str(out), "--subject", "s00", "--cameras", "orbit",
+                                               "--orbit-count", "3", "--out", str(tmp_path / "orbit")])
+    assert orbit.exit_code != 0 and "several datasets" in orbit.output
+    orbit = runner.invoke(COMMANDS["render"], ["stage1", str(out), "--subject", "db/s00", "--cameras", "orbit",
+                                               "--orbit-count", "3", "--out", str(tmp_path / "orbit")])
+    assert orbit.exit_code == 0, orbit.output
+    assert len(list((tmp_path / "orbit").glob("*.png"))) == 3
+
+
+def test_train_command_reports_missing_template(tmp_path):
+    dataset = write_dataset(tmp_path, "dc", subjects=1, cameras=2, size=16)
+    (dataset / "template.obj").unlink()
+    result = CliRunner().invoke(COMMANDS["train"], ["stage1", "--data", str(dataset), "--out", str(tmp_path / "r")])
+    assert result.exit_code != 0 and "template.obj" in result.output

@@ -1,0 +1,197 @@
+"""Stage-2 and single-stage training end to end on a tiny OLAT sphere world.
+
+The world: Lambertian spheres (the stage-1 test template) lit by a four-light rig, seen by three cameras,
+with one OLAT frame per light and one full-on frame per subject, plus ``lights.arrow``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+from relightanyone.model.checkpoint import load_checkpoint
+from relightanyone.model.presets import get_stage2_preset
+from relightanyone.model.stage1 import Stage1Config, train_stage1
+from relightanyone.model.stage2_train import Stage2Config, Stage2Trainer
+from stage1_world import RADIUS, sphere_obj, tiny_stage1_preset
+
+from relightanyone.format.codecs import encode_image, encode_mask
+from relightanyone.format.examples import look_at_w2c
+from relightanyone.format.schema import (
+    DatasetInfo,
+    LightRow,
+    MeshRow,
+    Provenance,
+    build_image_row,
+    fingerprint_config,
+)
+from relightanyone.format.shards import ShardWriter
+
+SIZE = 24
+LIGHT_POSITIONS = np.array([[0.8, 0.4, 0.6], [-0.8, 0.3, 0.6], [0.0, 0.9, 0.5], [0.0, -0.5, 0.9]])
+LIGHT_INTENSITY = 2.5  # radiant intensity: about 2.5 W/m² on the sphere, radiance 0.2-0.5 per light
+
+
+def _render_lambert_sphere(albedo, K, w2c, lights):
+    """Ray-cast the radius-RADIUS sphere at the origin under point lights: (image (H, W, 3), mask (H, W))."""
+    c2w = np.linalg.inv(w2c)
+    y, x = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+    rays = np.stack([(x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1], np.ones_like(x)], -1) @ c2w[:3, :3].T
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    origin = c2w[:3, 3]
+    b = rays @ origin
+    disc = b**2 - (origin @ origin - RADIUS**2)
+    mask = disc > 0
+    points = origin + (-b - np.sqrt(np.clip(disc, 0, None)))[..., None] * rays
+    normals = points / RADIUS
+    irradiance = np.zeros(mask.shape)
+    for position in lights:
+        offset = position - points
+        distance_sq = (offset**2).sum(-1)
+        irradiance += LIGHT_INTENSITY * np.clip((normals * offset).sum(-1), 0, None) / distance_sq**1.5
+    image = np.where(mask[..., None], albedo / np.pi * irradiance[..., None], 0.0).astype(np.float32)
+    return image, mask
+
+
+def write_olat_dataset(root: Path, name: str = "olat", subjects: int = 2, cameras: int = 3) -> Path:
+    vertices, obj_text = sphere_obj()
+    dataset_dir = root / name
+    info = DatasetInfo(name=name, kind="olat", template_mesh_id="sphere", lighting="4-light OLAT rig + full-on",
+                       provenance=Provenance(source_dataset="stage2 test sphere world", licence="CC0"),
+                       config_fingerprint=fingerprint_config({"name": name}))
+    writer = ShardWriter(dataset_dir, info)
+    writer.begin()
+    writer.write_lights([LightRow(index=k, name=f"L{k}", position_m=tuple(p), intensity_rgb=(LIGHT_INTENSITY,) * 3,
+                                  pattern=f"olat-{k:03d}") for k, p in enumerate(LIGHT_POSITIONS)])
+    K = np.array([[2.2 * SIZE, 0, (SIZE - 1) / 2], [0, 2.2 * SIZE, (SIZE - 1) / 2], [0, 0, 1.0]])
+    rng = np.random.default_rng(3)
+    for s in range(subjects):
+        subject = f"s{s:02d}"
+        albedo = rng.uniform(0.3, 0.9, 3)
+        with writer.part(subject) as part:
+            part.add_mesh(MeshRow(subject=subject, frame=0, vertices=vertices.astype(np.float32)))
+            for c in range(cameras):
+                angle = 0.6 * (c - 1)
+                w2c = look_at_w2c(0.5 * np.array([np.sin(angle), 0.1, np.cos(angle)]))
+                patterns = {"full": LIGHT_POSITIONS} | {f"olat-{k:03d}": LIGHT_POSITIONS[k : k + 1] for k in range(4)}
+                for pattern, lights in patterns.items():
+                    image, mask = _render_lambert_sphere(albedo, K, w2c, lights)
+                    source = f"{subject}/{pattern}/cam{c:02d}.exr"
+                    part.add(build_image_row(
+                        dataset=name, subject=subject, frame=0, camera=f"cam{c:02d}", pattern=pattern, split="train",
+                        K=K, w2c=w2c, image=encode_image(image), image_encoding="raw-f16", mask=encode_mask(mask),
+                        width=SIZE, height=SIZE, source=source, source_sha256=hashlib.sha256(source.encode()).hexdigest(),
+                    ))
+    writer.commit()
+    (dataset_dir / "template.obj").write_text(obj_text)
+    return dataset_dir
+
+
+def tiny_stage2_preset(**changes):
+    settings = dict(sh_order=2, base_channels=8, max_channels=16, crop_size=SIZE, batch_size=2, iterations=10,
+                    normal_anneal_iterations=5, albedo_anneal_iterations=5, checkpoint_every=5, log_every=2,
+                    learning_rate=5e-3, full_on_fraction=0.5)
+    settings.update(changes)
+    return get_stage2_preset("tiny").replace(**settings)
+
+
+@pytest.fixture(scope="module")
+def olat_world(tmp_path_factory) -> tuple[Path, Path]:
+    """(OLAT dataset folder, stage-1 run trained on its full-on frames)."""
+    root = tmp_path_factory.mktemp("olat-world")
+    dataset = write_olat_dataset(root)
+    run = root / "stage1"
+    train_stage1(Stage1Config([dataset], run, tiny_stage1_preset(iterations=4, crop_size=SIZE, held_out_cameras=0),
+                              progress=False, evaluate=False))
+    return dataset, run
+
+
+def _fixed_batch_losses(trainer: Stage2Trainer, batches: list[dict]) -> float:
+    """Mean image objective 10 L1 + 0.2 (1 - SSIM) over fixed batches (the regularisers start at zero)."""
+    with torch.no_grad():
+        terms = [trainer.loss(batch, 0)[1] for batch in batches]
+    return float(np.mean([10.0 * t["l1"] + 0.2 * t["ssim"] for t in terms]))
+
+
+def test_stage2_trains_with_stage1_frozen_and_lowers_the_loss(olat_world, tmp_path):
+    dataset, run = olat_world
+    trainer = Stage2Trainer(Stage2Config(dataset, tmp_path / "s2", tiny_stage2_preset(), stage1_run=run, progress=False))
+    assert trainer.frames.subjects == ["olat/s00", "olat/s01"]
+    assert len(trainer.frames.olat) == 2 * 3 * 4 and len(trainer.frames.full_on) == 2 * 3
+    assert trainer.albedo_prior.shape == (trainer.stage1.binding.count, 3) and (trainer.albedo_prior > 0).all()
+    stage1_before = {k: v.clone() for k, v in trainer.stage1.state_dict().items()}
+    batches = [trainer.batch(i) for i in range(3)]
+    # An OLAT batch lights one rig light per sample; a full-on sample has all four.
+    counts = {int((b["light_intensities"].abs().sum(-1) > 0).sum(-1).max()) for b in batches}
+    assert counts <= {1, 4}
+    before = _fixed_batch_losses(trainer, batches)
+    metrics = trainer.train()
+    after = _fixed_batch_losses(trainer, batches)
+    assert after < 0.9 * before, (before, after)
+    assert all(torch.equal(v, trainer.stage1.state_dict()[k]) for k, v in stage1_before.items())
+    assert all(not p.requires_grad for p in trainer.stage1.parameters()) and not trainer.stage1.training
+    out = tmp_path / "s2"
+    assert metrics["mode"] == "stage2" and metrics["seconds_per_iteration"] > 0
+    assert {"albedo", "negative_diffuse", "monochrome", "normal"} <= set(metrics["last_losses"])
+    checkpoint = load_checkpoint(out / "checkpoint.pt")
+    assert checkpoint["iteration"] == 10 and checkpoint["single_stage"] is False
+    info = json.loads((out / "run.json").read_text())
+    assert info["stage"] == "stage2" and info["frames"] == {"full_on": 6, "olat": 24} and info["lights"] == 4
+
+
+def test_resumed_stage2_run_ends_with_the_uninterrupted_weights(olat_world, tmp_path):
+    dataset, run = olat_world
+    preset = tiny_stage2_preset(iterations=4, checkpoint_every=2)
+    whole = Stage2Trainer(Stage2Config(dataset, tmp_path / "whole", preset, stage1_run=run, progress=False))
+    whole.train()
+    Stage2Trainer(Stage2Config(dataset, tmp_path / "split", preset.replace(iterations=2), stage1_run=run, progress=False)).train()
+    resumed = Stage2Trainer(Stage2Config(dataset, tmp_path / "split", preset, stage1_run=run, progress=False))
+    resumed.train()
+    assert resumed.start == 2
+    for name, tensor in whole.trainable.state_dict().items():
+        assert torch.equal(tensor, resumed.trainable.state_dict()[name]), name
+
+
+def test_single_stage_flag_trains_through_the_same_trainer(olat_world, tmp_path):
+    dataset, _ = olat_world
+    config = Stage2Config(dataset, tmp_path / "single", tiny_stage2_preset(), single_stage=True, progress=False,
+                          stage1_preset=tiny_stage1_preset(crop_size=SIZE))
+    trainer = Stage2Trainer(config)
+    assert trainer.albedo_prior is None and not hasattr(trainer, "stage1")
+    batches = [trainer.batch(i) for i in range(3)]
+    before = _fixed_batch_losses(trainer, batches)
+    metrics = trainer.train()
+    after = _fixed_batch_losses(trainer, batches)
+    assert after < 0.9 * before, (before, after)
+    assert metrics["mode"] == "single-stage" and {"geometry", "scale", "offset"} <= set(metrics["last_losses"])
+    assert load_checkpoint(tmp_path / "single" / "checkpoint.pt")["single_stage"] is True
+    # Resuming the finished run in the other mode is refused instead of mixing weights.
+    with pytest.raises(ValueError, match="another mode"):
+        Stage2Trainer(Stage2Config(dataset, tmp_path / "single", tiny_stage2_preset(), stage1_run=olat_world[1],
+                                   progress=False)).resume_if_possible()
+
+
+def test_cli_trains_stage2_and_explains_bad_input(olat_world, tmp_path):
+    from relightanyone.model.cli import COMMANDS
+
+    dataset, run = olat_world
+    runner = CliRunner()
+    result = runner.invoke(COMMANDS["train"], ["stage2", "--data", str(dataset), "--stage1", str(run), "--out",
+                                               str(tmp_path / "cli"), "--iterations", "2", "--batch-size", "1"])
+    assert result.exit_code == 0, result.output
+    assert load_checkpoint(tmp_path / "cli" / "checkpoint.pt")["iteration"] == 2
+    missing = runner.invoke(COMMANDS["train"], ["stage2", "--data", str(dataset), "--out", str(tmp_path / "x")])
+    assert missing.exit_code != 0 and "--stage1" in missing.output
+    from stage1_world import write_dataset
+
+    flat = write_dataset(tmp_path, "flat", subjects=1, cameras=2, size=16)
+    no_rig = runner.invoke(COMMANDS["train"], ["stage2", "--data", str(flat), "--single-stage", "--out", str(tmp_path / "y")])
+    assert no_rig.exit_code != 0 and "lights.arrow" in no_rig.output
+    other = write_olat_dataset(tmp_path, "other", subjects=1, cameras=1)
+    unknown = runner.invoke(COMMANDS["train"], ["stage2", "--data", str(other), "--stage1", str(run), "--out", str(tmp_path / "z")])
+    assert unknown.exit_code != 0 and "not trained on dataset 'other'" in unknown.output
