@@ -57,7 +57,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--uncalibrated", action="append", default=[], help="dataset name (repeatable)")
     parser.add_argument("--iterations", type=int, default=None)
     parser.add_argument("--warmup-iterations", type=int, default=None)
-    parser.add_argument("--eval-views", type=int, default=None, help="held-out views per dataset (default all)")
+    parser.add_argument(
+        "--eval-views", type=int, default=None, help="held-out views per dataset (default all)"
+    )
     parser.add_argument("--out", type=Path, default=Path("bench-runs/stage1"))
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (1 on a shared machine)")
     args = parser.parse_args(argv)
@@ -79,13 +81,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.root}: no normalized datasets found; run ingest first", file=sys.stderr)
         return 1
     preset = get_preset(args.preset)
-    changes = {k: v for k, v in (("iterations", args.iterations), ("warmup_iterations", args.warmup_iterations)) if v}
+    changes = {
+        k: v for k, v in (("iterations", args.iterations), ("warmup_iterations", args.warmup_iterations)) if v
+    }
     preset = preset.replace(**changes) if changes else preset
     result: dict = {"benchmark": "stage 1", "preset": preset.to_json(), "datasets": [str(d) for d in data]}
 
     if args.uncalibrated:
         began = time.perf_counter()
-        warm = run_colour_warmup(data, args.out, preset, tuple(args.uncalibrated), eval_views_per_dataset=args.eval_views)
+        warm = run_colour_warmup(
+            data, args.out, preset, tuple(args.uncalibrated), eval_views_per_dataset=args.eval_views
+        )
         result["warmup"] = {
             "wall_seconds": time.perf_counter() - began,
             "seconds_per_iteration": warm["seconds_per_iteration"],
@@ -101,7 +107,9 @@ def main(argv: list[str] | None = None) -> int:
             }
 
     began = time.perf_counter()
-    metrics = train_stage1(Stage1Config(data=data, out=args.out, preset=preset, eval_views_per_dataset=args.eval_views))
+    metrics = train_stage1(
+        Stage1Config(data=data, out=args.out, preset=preset, eval_views_per_dataset=args.eval_views)
+    )
     result["training"] = {
         "wall_seconds": time.perf_counter() - began,
         "seconds_per_iteration": metrics["seconds_per_iteration"],

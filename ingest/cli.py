@@ -50,7 +50,8 @@ def _test_subjects(listed: tuple[str, ...], splits_file: Path | None) -> tuple[s
             raise click.BadParameter(f"{splits_file}: {error}", param_hint="--splits") from None
         if not isinstance(splits, dict) or not all(isinstance(v, str) for v in splits.values()):
             raise click.BadParameter(
-                f'{splits_file}: expected a JSON object {{"subject": "train" | "test"}}', param_hint="--splits"
+                f'{splits_file}: expected a JSON object {{"subject": "train" | "test"}}',
+                param_hint="--splits",
             )
         names |= {subject for subject, split in splits.items() if split == "test"}
     return tuple(sorted(names))

@@ -94,7 +94,9 @@ class NativeCamera:
 
     name: str
     K: np.ndarray  # (3, 3)
-    w2c: np.ndarray  # (4, 4) native world (metres) -> camera; head pose already folded in where the format has one
+    w2c: (
+        np.ndarray
+    )  # (4, 4) native world (metres) -> camera; head pose already folded in where the format has one
     dist: np.ndarray  # (5,) OpenCV k1, k2, p1, p2, k3
     width: int
     height: int
@@ -169,7 +171,9 @@ class AdapterOptions:
     cameras: tuple[str, ...] | None = None
     frames: tuple[int, ...] | None = None
     test_subjects: tuple[str, ...] = ()  # subjects written with split "test" (all others "train")
-    all_frames: bool = False  # datasets with a preferred frame (Ava-256's neutral peak): take every listed frame
+    all_frames: bool = (
+        False  # datasets with a preferred frame (Ava-256's neutral peak): take every listed frame
+    )
     sequence: str | None = None  # datasets recorded as named sequences (NeRSemble): which one to ingest
 
     def keeps_subject(self, subject: str) -> bool:

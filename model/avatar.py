@@ -65,7 +65,9 @@ def resolve_lighting(lighting: Lighting) -> PointLights | DirectionalLights | Pr
         return prefilter_for_shading(load_envmap(lighting))
     if isinstance(lighting, torch.Tensor):
         if lighting.ndim != 3 or lighting.shape[0] != 3:
-            raise ValueError(f"an environment map must be a (3, H, W) lat-long tensor, got {tuple(lighting.shape)}")
+            raise ValueError(
+                f"an environment map must be a (3, H, W) lat-long tensor, got {tuple(lighting.shape)}"
+            )
         return prefilter_for_shading(lighting.float())
     raise TypeError(
         f"lighting must be PointLights, DirectionalLights, an environment map (tensor, PrefilteredEnvmap or "
@@ -106,20 +108,32 @@ def shade_reflectance(
     if isinstance(lighting, PointLights):
         lights = lighting.to(positions.device, positions.dtype)
         return relight(
-            params, positions, camera_positions, lights.positions.expand(views, -1, -1),
-            lights.intensities.expand(views, -1, -1), head_centre, normalization, inverse_square,
+            params,
+            positions,
+            camera_positions,
+            lights.positions.expand(views, -1, -1),
+            lights.intensities.expand(views, -1, -1),
+            head_centre,
+            normalization,
+            inverse_square,
         ).colour
     lobes = reflected_view_directions(positions, camera_positions, params.normals)
     if isinstance(lighting, DirectionalLights):
         lights = lighting.to(positions.device, positions.dtype)
         light_sh = project_directions_to_sh(lights.directions, lights.irradiance, params.sh_order)
         specular = specular_directional_lights(
-            lobes, params.roughness, lights.directions.expand(views, -1, -1), lights.irradiance.expand(views, -1, -1),
-            params.visibility, normalization=normalization,
+            lobes,
+            params.roughness,
+            lights.directions.expand(views, -1, -1),
+            lights.irradiance.expand(views, -1, -1),
+            params.visibility,
+            normalization=normalization,
         )
     else:
         light_sh = envmap_to_sh(lighting.levels[0].to(positions.device, positions.dtype), params.sh_order)
-        specular = specular_envmap(lobes, params.roughness, lighting, params.visibility, normalization=normalization)
+        specular = specular_envmap(
+            lobes, params.roughness, lighting, params.visibility, normalization=normalization
+        )
     diffuse = diffuse_color(params.albedo, params.transfer, light_sh.expand(views, -1, -1))
     return combine_diffuse_specular(diffuse, specular)
 
@@ -129,7 +143,9 @@ def check_pinhole_cameras(cameras) -> tuple[int, int]:
     if len(cameras) == 0:
         raise ValueError("relight needs at least one camera")
     if bool((cameras.dist != 0).any()):
-        raise ValueError("relight renders pinhole cameras: undistort the images and pass cameras with zero distortion")
+        raise ValueError(
+            "relight renders pinhole cameras: undistort the images and pass cameras with zero distortion"
+        )
     sizes = {(int(w), int(h)) for w, h in zip(cameras.width.tolist(), cameras.height.tolist(), strict=True)}
     if len(sizes) != 1:
         raise ValueError(f"relight renders one image size per call; these cameras have sizes {sorted(sizes)}")
@@ -171,9 +187,13 @@ class FittedAvatar:
         for name in GAUSSIAN_FIELDS:
             value = getattr(self, name)
             if value.shape[0] != count:
-                raise ValueError(f"avatar {name} has {value.shape[0]} rows but the UV binding has {count} Gaussians")
+                raise ValueError(
+                    f"avatar {name} has {value.shape[0]} rows but the UV binding has {count} Gaussians"
+                )
         if self.scene_intensities.shape != (len(self.rig), 3):
-            raise ValueError(f"scene_intensities must be ({len(self.rig)}, 3), got {tuple(self.scene_intensities.shape)}")
+            raise ValueError(
+                f"scene_intensities must be ({len(self.rig)}, 3), got {tuple(self.scene_intensities.shape)}"
+            )
         self.stage2.eval().requires_grad_(False)
 
     @property
@@ -207,8 +227,12 @@ class FittedAvatar:
         camera_positions = torch.as_tensor(camera_positions, dtype=torch.float32).reshape(-1, 3)
         views = camera_positions.shape[0]
         return shade_reflectance(
-            self.reflectance(camera_positions), self.means.expand(views, -1, -1), camera_positions,
-            resolve_lighting(lighting), self.head_centre, self.stage2_preset.lobe_normalization,
+            self.reflectance(camera_positions),
+            self.means.expand(views, -1, -1),
+            camera_positions,
+            resolve_lighting(lighting),
+            self.head_centre,
+            self.stage2_preset.lobe_normalization,
             self.stage2_preset.inverse_square,
         )
 
@@ -223,15 +247,24 @@ class FittedAvatar:
         """
         if hasattr(view, "w2c"):
             if view.w2c.shape[0] != 1:
-                raise ValueError(f"gaussians() relights for one view; got {view.w2c.shape[0]} cameras (index one: cameras[i])")
+                raise ValueError(
+                    f"gaussians() relights for one view; got {view.w2c.shape[0]} cameras (index one: cameras[i])"
+                )
             position = camera_centres(view.w2c.float())[0]
         else:
             position = torch.as_tensor(view, dtype=torch.float32)
         if position.shape != (3,):
-            raise ValueError(f"view must be one camera centre (3,) or one camera, got shape {tuple(position.shape)}")
+            raise ValueError(
+                f"view must be one camera centre (3,) or one camera, got shape {tuple(position.shape)}"
+            )
         colours = self.relit_colours(position[None], lighting)[0]
-        return {"means": self.means, "quats": self.quats, "scales": self.scales, "opacities": self.opacities,
-                "colours": colours}
+        return {
+            "means": self.means,
+            "quats": self.quats,
+            "scales": self.scales,
+            "opacities": self.opacities,
+            "colours": colours,
+        }
 
     @torch.no_grad()
     def relight(self, cameras, lighting: Lighting, background: torch.Tensor | None = None) -> torch.Tensor:
@@ -249,8 +282,18 @@ class FittedAvatar:
         width, height = check_pinhole_cameras(cameras)
         w2c, K = cameras.w2c.float(), cameras.K.float()
         colours = self.relit_colours(camera_centres(w2c), lighting)
-        image, _, _ = rasterize(self.means, self.quats, self.scales, self.opacities, colours, w2c, K, width, height,
-                                background=background)
+        image, _, _ = rasterize(
+            self.means,
+            self.quats,
+            self.scales,
+            self.opacities,
+            colours,
+            w2c,
+            K,
+            width,
+            height,
+            background=background,
+        )
         return image
 
     def save(self, path: str | Path) -> Path:
@@ -266,7 +309,9 @@ class FittedAvatar:
             "stage2_preset_json": json.dumps(self.stage2_preset.to_json(), sort_keys=True),
             "gaussians": {name: getattr(self, name).detach().cpu().contiguous() for name in GAUSSIAN_FIELDS},
             "vertices": self.vertices.detach().cpu(),
-            "tracked_vertices": None if self.tracked_vertices is None else self.tracked_vertices.detach().cpu(),
+            "tracked_vertices": None
+            if self.tracked_vertices is None
+            else self.tracked_vertices.detach().cpu(),
             "binding": {name: getattr(self.binding, name).cpu() for name in BINDING_FIELDS},
             "uv_size": int(self.binding.uv_size),
             "stage2": {name: value.cpu() for name, value in self.stage2.state_dict().items()},
@@ -282,38 +327,75 @@ class FittedAvatar:
         """Read a file written by :meth:`save`; errors name the file and what is wrong."""
         path = Path(path)
         if not path.is_file():
-            raise FileNotFoundError(f"{path}: no avatar file; fit one first (relightanyone.model.fit.fit_subject)")
+            raise FileNotFoundError(
+                f"{path}: no avatar file; fit one first (relightanyone.model.fit.fit_subject)"
+            )
         try:
             payload = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as error:  # torch raises several unrelated types for a corrupt or foreign file
             raise ValueError(f"{path}: not a readable avatar file ({error})") from error
         if not isinstance(payload, dict) or payload.get("format") != AVATAR_FORMAT:
-            raise ValueError(f"{path}: field 'format' is not {AVATAR_FORMAT!r}; this is not a fitted avatar file")
+            raise ValueError(
+                f"{path}: field 'format' is not {AVATAR_FORMAT!r}; this is not a fitted avatar file"
+            )
         if payload.get("version") != AVATAR_VERSION:
-            raise ValueError(f"{path}: avatar version {payload.get('version')!r}, this toolkit reads {AVATAR_VERSION}")
+            raise ValueError(
+                f"{path}: avatar version {payload.get('version')!r}, this toolkit reads {AVATAR_VERSION}"
+            )
         try:
             stage1_preset = Stage1Preset.from_json(json.loads(payload["stage1_preset_json"]))
             stage2_preset = Stage2Preset.from_json(json.loads(payload["stage2_preset_json"]))
             binding = TexelBinding(**payload["binding"], uv_size=int(payload["uv_size"]))
             stage2_state = payload["stage2"]
-            stage2 = Stage2Model(binding, stage2_state["head_centre"], payload["stage2_radius"], stage2_preset.sh_order,
-                                 stage2_preset.base_channels, stage2_preset.max_channels)
+            stage2 = Stage2Model(
+                binding,
+                stage2_state["head_centre"],
+                payload["stage2_radius"],
+                stage2_preset.sh_order,
+                stage2_preset.base_channels,
+                stage2_preset.max_channels,
+            )
             stage2.load_state_dict(stage2_state)
             rig = PointLights(payload["rig"]["positions"], payload["rig"]["intensities"])
-            return cls(**payload["gaussians"], vertices=payload["vertices"], tracked_vertices=payload["tracked_vertices"],
-                       binding=binding, stage2=stage2, stage1_preset=stage1_preset, stage2_preset=stage2_preset, rig=rig,
-                       scene_intensities=payload["scene_intensities"], metadata=json.loads(payload["metadata_json"]))
+            return cls(
+                **payload["gaussians"],
+                vertices=payload["vertices"],
+                tracked_vertices=payload["tracked_vertices"],
+                binding=binding,
+                stage2=stage2,
+                stage1_preset=stage1_preset,
+                stage2_preset=stage2_preset,
+                rig=rig,
+                scene_intensities=payload["scene_intensities"],
+                metadata=json.loads(payload["metadata_json"]),
+            )
         except (KeyError, TypeError, RuntimeError) as error:
             raise ValueError(f"{path}: avatar file is incomplete or inconsistent ({error!r})") from error
 
     def to(self, device: torch.device | str) -> FittedAvatar:
         """A copy with every tensor (and the stage-2 network) on ``device``."""
-        moved = {name: getattr(self, name).to(device) for name in (*GAUSSIAN_FIELDS, "vertices", "scene_intensities")}
+        moved = {
+            name: getattr(self, name).to(device)
+            for name in (*GAUSSIAN_FIELDS, "vertices", "scene_intensities")
+        }
         tracked = None if self.tracked_vertices is None else self.tracked_vertices.to(device)
-        binding = TexelBinding(**{n: getattr(self.binding, n).to(device) for n in BINDING_FIELDS},
-                               uv_size=self.binding.uv_size)
-        stage2 = Stage2Model(binding, self.head_centre, self.stage2.radius, self.stage2_preset.sh_order,
-                             self.stage2_preset.base_channels, self.stage2_preset.max_channels)
+        binding = TexelBinding(
+            **{n: getattr(self.binding, n).to(device) for n in BINDING_FIELDS}, uv_size=self.binding.uv_size
+        )
+        stage2 = Stage2Model(
+            binding,
+            self.head_centre,
+            self.stage2.radius,
+            self.stage2_preset.sh_order,
+            self.stage2_preset.base_channels,
+            self.stage2_preset.max_channels,
+        )
         stage2.load_state_dict(self.stage2.state_dict())
-        return dataclasses.replace(self, **moved, tracked_vertices=tracked, binding=binding, stage2=stage2.to(device),
-                                   rig=self.rig.to(device))
+        return dataclasses.replace(
+            self,
+            **moved,
+            tracked_vertices=tracked,
+            binding=binding,
+            stage2=stage2.to(device),
+            rig=self.rig.to(device),
+        )

@@ -58,7 +58,9 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     """Read a checkpoint written by :func:`save_checkpoint`; the error names the file when it is unreadable."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no checkpoint; train first (relightanyone train stage1 ... --out RUN)")
+        raise FileNotFoundError(
+            f"{path}: no checkpoint; train first (relightanyone train stage1 ... --out RUN)"
+        )
     try:
         # Checkpoints hold NumPy random states, which the weights-only unpickler refuses.
         return torch.load(path, map_location="cpu", weights_only=False)

@@ -19,24 +19,74 @@ def train_group() -> None:
 
 
 @train_group.command("stage1")
-@click.option("--data", "data", multiple=True, required=True, type=click.Path(exists=True, file_okay=False, path_type=Path),
-              help="Normalized dataset folder (repeat for each dataset).")
-@click.option("--preset", type=click.Choice(PRESET_NAMES), default="tiny", show_default=True, help="Model size and schedule.")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True, help="Run folder to write (or resume).")
-@click.option("--uncalibrated", multiple=True, metavar="NAME",
-              help="Dataset without colour calibration (repeatable): a warm-up learns its 3x3 colour matrix first.")
-@click.option("--colour-warmup/--no-colour-warmup", default=True, show_default=True,
-              help="Run the colour warm-up for --uncalibrated datasets (off: reuse matrices already stored).")
+@click.option(
+    "--data",
+    "data",
+    multiple=True,
+    required=True,
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    help="Normalized dataset folder (repeat for each dataset).",
+)
+@click.option(
+    "--preset",
+    type=click.Choice(PRESET_NAMES),
+    default="tiny",
+    show_default=True,
+    help="Model size and schedule.",
+)
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Run folder to write (or resume).",
+)
+@click.option(
+    "--uncalibrated",
+    multiple=True,
+    metavar="NAME",
+    help="Dataset without colour calibration (repeatable): a warm-up learns its 3x3 colour matrix first.",
+)
+@click.option(
+    "--colour-warmup/--no-colour-warmup",
+    default=True,
+    show_default=True,
+    help="Run the colour warm-up for --uncalibrated datasets (off: reuse matrices already stored).",
+)
 @click.option("--iterations", type=int, default=None, help="Override the preset's iteration count.")
-@click.option("--warmup-iterations", type=int, default=None, help="Override the preset's warm-up iteration count.")
+@click.option(
+    "--warmup-iterations", type=int, default=None, help="Override the preset's warm-up iteration count."
+)
 @click.option("--batch-size", type=int, default=None, help="Override the preset's batch size (per process).")
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--resume/--no-resume", default=True, show_default=True, help="Continue from RUN/checkpoint.pt when present.")
-@click.option("--eval-views", type=int, default=None, help="Held-out views per dataset to evaluate (default: all).")
-@click.option("--threads", type=int, default=None,
-              help="CPU threads for torch (default: torch's choice; use 1 on a machine shared with other jobs).")
-def train_stage1_command(data, preset, out, uncalibrated, colour_warmup, iterations, warmup_iterations, batch_size,
-                         seed, resume, eval_views, threads) -> None:
+@click.option(
+    "--resume/--no-resume",
+    default=True,
+    show_default=True,
+    help="Continue from RUN/checkpoint.pt when present.",
+)
+@click.option(
+    "--eval-views", type=int, default=None, help="Held-out views per dataset to evaluate (default: all)."
+)
+@click.option(
+    "--threads",
+    type=int,
+    default=None,
+    help="CPU threads for torch (default: torch's choice; use 1 on a machine shared with other jobs).",
+)
+def train_stage1_command(
+    data,
+    preset,
+    out,
+    uncalibrated,
+    colour_warmup,
+    iterations,
+    warmup_iterations,
+    batch_size,
+    seed,
+    resume,
+    eval_views,
+    threads,
+) -> None:
     """Train stage 1 on one or more normalized datasets.
 
     Example: relightanyone train stage1 --data out/d1 --data out/ava256 --uncalibrated ava256 --preset demo --out runs/s1
@@ -52,21 +102,42 @@ def train_stage1_command(data, preset, out, uncalibrated, colour_warmup, iterati
     if threads is not None:
         torch.set_num_threads(threads)
     chosen = get_preset(preset)
-    changes = {k: v for k, v in (("iterations", iterations), ("warmup_iterations", warmup_iterations),
-                                 ("batch_size", batch_size)) if v is not None}
+    changes = {
+        k: v
+        for k, v in (
+            ("iterations", iterations),
+            ("warmup_iterations", warmup_iterations),
+            ("batch_size", batch_size),
+        )
+        if v is not None
+    }
     chosen = chosen.replace(**changes) if changes else chosen
     try:
         if uncalibrated and colour_warmup:
-            warm = run_colour_warmup(list(data), out, chosen, tuple(uncalibrated), seed, eval_views_per_dataset=eval_views)
+            warm = run_colour_warmup(
+                list(data), out, chosen, tuple(uncalibrated), seed, eval_views_per_dataset=eval_views
+            )
             if warm:
-                click.echo("colour warm-up matrices (render -> dataset): " + json.dumps(warm["colour_matrices"]))
-        metrics = train_stage1(Stage1Config(data=list(data), out=out, preset=chosen, seed=seed, resume=resume,
-                                            eval_views_per_dataset=eval_views))
+                click.echo(
+                    "colour warm-up matrices (render -> dataset): " + json.dumps(warm["colour_matrices"])
+                )
+        metrics = train_stage1(
+            Stage1Config(
+                data=list(data),
+                out=out,
+                preset=chosen,
+                seed=seed,
+                resume=resume,
+                eval_views_per_dataset=eval_views,
+            )
+        )
     except (ValueError, FileNotFoundError) as error:
         raise click.ClickException(str(error)) from error
     if metrics.get("held_out"):
         for name, values in metrics["held_out"].items():
-            click.echo(f"{name}: held-out PSNR {values['psnr']:.2f} dB, SSIM {values['ssim']:.4f} ({values['views']} views)")
+            click.echo(
+                f"{name}: held-out PSNR {values['psnr']:.2f} dB, SSIM {values['ssim']:.4f} ({values['views']} views)"
+            )
 
 
 @click.group("render")
@@ -76,13 +147,22 @@ def render_group() -> None:
 
 @render_group.command("stage1")
 @click.argument("run", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option("--subject", default=None, help="Subject as <dataset>/<subject> (or a name unique across datasets).")
-@click.option("--lighting-code", default=None, metavar="DATASET", help="Render under this dataset's lighting code.")
+@click.option(
+    "--subject", default=None, help="Subject as <dataset>/<subject> (or a name unique across datasets)."
+)
+@click.option(
+    "--lighting-code", default=None, metavar="DATASET", help="Render under this dataset's lighting code."
+)
 @click.option("--cameras", type=click.Choice(["dataset", "orbit"]), default="dataset", show_default=True)
 @click.option("--orbit-count", type=int, default=8, show_default=True, help="Cameras on the orbit.")
-@click.option("--lighting-grid", is_flag=True,
-              help="Write lighting_grid.png: a subject of every dataset under every dataset's lighting code.")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True, help="Folder for the PNGs.")
+@click.option(
+    "--lighting-grid",
+    is_flag=True,
+    help="Write lighting_grid.png: a subject of every dataset under every dataset's lighting code.",
+)
+@click.option(
+    "--out", type=click.Path(file_okay=False, path_type=Path), required=True, help="Folder for the PNGs."
+)
 def render_stage1_command(run, subject, lighting_code, cameras, orbit_count, lighting_grid, out) -> None:
     """Render a stage-1 subject to PNGs (sRGB); report colour shift and geometry when swapping lighting codes."""
     from relightanyone.model.render_stage1 import lighting_alignment_grid, load_run, render_subject
@@ -115,19 +195,49 @@ COMMANDS: dict[str, click.Command] = {"train": train_group, "render": render_gro
 
 
 @train_group.command("stage2")
-@click.option("--data", type=click.Path(exists=True, file_okay=False, path_type=Path), required=True,
-              help="The normalized OLAT dataset (full-on and olat-KKK frames, lights.arrow).")
-@click.option("--stage1", "stage1_run", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
-              help="The stage-1 run to freeze (trained with this dataset); not used with --single-stage.")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True, help="Run folder to write (or resume).")
-@click.option("--preset", type=click.Choice(PRESET_NAMES), default="tiny", show_default=True, help="Model size and schedule.")
-@click.option("--single-stage", is_flag=True,
-              help="Train the single-stage baseline instead: stage 1 with relightable decoders, OLAT dataset only.")
+@click.option(
+    "--data",
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    required=True,
+    help="The normalized OLAT dataset (full-on and olat-KKK frames, lights.arrow).",
+)
+@click.option(
+    "--stage1",
+    "stage1_run",
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    default=None,
+    help="The stage-1 run to freeze (trained with this dataset); not used with --single-stage.",
+)
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Run folder to write (or resume).",
+)
+@click.option(
+    "--preset",
+    type=click.Choice(PRESET_NAMES),
+    default="tiny",
+    show_default=True,
+    help="Model size and schedule.",
+)
+@click.option(
+    "--single-stage",
+    is_flag=True,
+    help="Train the single-stage baseline instead: stage 1 with relightable decoders, OLAT dataset only.",
+)
 @click.option("--iterations", type=int, default=None, help="Override the preset's iteration count.")
 @click.option("--batch-size", type=int, default=None, help="Override the preset's batch size.")
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--resume/--no-resume", default=True, show_default=True, help="Continue from RUN/checkpoint.pt when present.")
-def train_stage2_command(data, stage1_run, out, preset, single_stage, iterations, batch_size, seed, resume) -> None:
+@click.option(
+    "--resume/--no-resume",
+    default=True,
+    show_default=True,
+    help="Continue from RUN/checkpoint.pt when present.",
+)
+def train_stage2_command(
+    data, stage1_run, out, preset, single_stage, iterations, batch_size, seed, resume
+) -> None:
     """Train stage 2 (relighting UNet on a frozen stage-1 run) or the single-stage baseline.
 
     Example: relightanyone train stage2 --data out/d1 --stage1 runs/s1 --preset demo --out runs/s2
@@ -141,14 +251,25 @@ def train_stage2_command(data, stage1_run, out, preset, single_stage, iterations
     changes = {k: v for k, v in (("iterations", iterations), ("batch_size", batch_size)) if v is not None}
     chosen = chosen.replace(**changes) if changes else chosen
     if not single_stage and stage1_run is None:
-        raise click.UsageError("stage 2 needs --stage1 RUN (a stage-1 run trained with this dataset), or --single-stage")
-    config = Stage2Config(data=data, out=out, preset=chosen, stage1_run=None if single_stage else stage1_run,
-                          single_stage=single_stage, stage1_preset=get_preset(preset) if single_stage else None,
-                          seed=seed, resume=resume)
+        raise click.UsageError(
+            "stage 2 needs --stage1 RUN (a stage-1 run trained with this dataset), or --single-stage"
+        )
+    config = Stage2Config(
+        data=data,
+        out=out,
+        preset=chosen,
+        stage1_run=None if single_stage else stage1_run,
+        single_stage=single_stage,
+        stage1_preset=get_preset(preset) if single_stage else None,
+        seed=seed,
+        resume=resume,
+    )
     try:
         metrics = train_stage2(config)
     except (ValueError, FileNotFoundError, IncompleteDatasetError) as error:
         raise click.ClickException(str(error)) from error
     last = metrics.get("last_losses") or {}
-    click.echo(f"{metrics['mode']}: {metrics['iterations']} iterations, last loss {last.get('total', float('nan')):.4g} "
-               f"(L1 {last.get('l1', float('nan')):.4g}); wrote {out}")
+    click.echo(
+        f"{metrics['mode']}: {metrics['iterations']} iterations, last loss {last.get('total', float('nan')):.4g} "
+        f"(L1 {last.get('l1', float('nan')):.4g}); wrote {out}"
+    )

@@ -46,7 +46,9 @@ def colour_cast_error(render_to_dataset: np.ndarray, true_casts: list[np.ndarray
         "relative_error_after_gain": float(relative_gain_free),
         "gain": gain,
         "residual_cast_max_offdiagonal_or_ratio": float(np.max(np.abs(residual_normalised - np.eye(3)))),
-        "identity_baseline_relative_error": float(np.linalg.norm(np.eye(3) - mean_cast) / np.linalg.norm(mean_cast)),
+        "identity_baseline_relative_error": float(
+            np.linalg.norm(np.eye(3) - mean_cast) / np.linalg.norm(mean_cast)
+        ),
         "identity_baseline_residual": float(
             np.max(np.abs(mean_cast / np.mean(np.diag(mean_cast)) - np.eye(3)))
         ),

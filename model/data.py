@@ -54,7 +54,9 @@ class Stage1Data:
             the colour warm-up, which learns those matrices from the raw colours).
     """
 
-    def __init__(self, dataset_dirs: list[Path], held_out_per_subject: int, apply_learned_colour: bool = True):
+    def __init__(
+        self, dataset_dirs: list[Path], held_out_per_subject: int, apply_learned_colour: bool = True
+    ):
         from relightanyone.format.reader import NormalizedDataset
 
         if not dataset_dirs:
@@ -92,7 +94,9 @@ class Stage1Data:
             )
         counts = {str(p): len(load_obj(p).vertices) for p in paths}
         if len(set(counts.values())) > 1:
-            raise ValueError(f"datasets trained together must share one template topology; vertex counts: {counts}")
+            raise ValueError(
+                f"datasets trained together must share one template topology; vertex counts: {counts}"
+            )
         return paths[0]
 
     @staticmethod
@@ -103,7 +107,10 @@ class Stage1Data:
 
     def _split_views(self, dataset_index: int, dataset, held_out_per_subject: int) -> tuple[list, list]:
         table = dataset.index
-        columns = {name: table.column(name).to_pylist() for name in ("key", "subject", "frame", "camera", "pattern", "split")}
+        columns = {
+            name: table.column(name).to_pylist()
+            for name in ("key", "subject", "frame", "camera", "pattern", "split")
+        }
         rows_by_subject: dict[str, list[int]] = {}
         for position, (pattern, split) in enumerate(zip(columns["pattern"], columns["split"], strict=True)):
             if pattern == FULL_ON_PATTERN and split == TRAIN_SPLIT:
@@ -133,8 +140,14 @@ class Stage1Data:
 
     def subject_views(self, subject_index: int, held_out_only: bool = False) -> list[ViewRef]:
         """Views of one identity row (its held-out cameras only, or all its cameras)."""
-        groups = self.held_out_views if held_out_only else [t + h for t, h in zip(self.train_views, self.held_out_views, strict=True)]
-        return sorted((v for views in groups for v in views if v.subject_index == subject_index), key=lambda v: v.key)
+        groups = (
+            self.held_out_views
+            if held_out_only
+            else [t + h for t, h in zip(self.train_views, self.held_out_views, strict=True)]
+        )
+        return sorted(
+            (v for views in groups for v in views if v.subject_index == subject_index), key=lambda v: v.key
+        )
 
     def tracked_vertices(self, view: ViewRef) -> np.ndarray | None:
         """(V, 3) tracked mesh of the view's (subject, frame); the subject's first frame when that frame has

@@ -17,7 +17,11 @@ from relightanyone.model.views import render_gaussians
 
 @torch.no_grad()
 def render_view(
-    model: Stage1Model, data: Stage1Data, view: ViewRef, use_lighting: bool = True, dataset_colour: bool = False
+    model: Stage1Model,
+    data: Stage1Data,
+    view: ViewRef,
+    use_lighting: bool = True,
+    dataset_colour: bool = False,
 ) -> dict[str, torch.Tensor]:
     """Render one stored view at full size. Returns render, image (1, 3, H, W) and mask (1, 1, H, W).
 
@@ -64,7 +68,9 @@ def evaluate_held_out(
         for view in views:
             out = render_view(model, data, view, use_lighting, dataset_colour)
             psnrs.append(masked_psnr(out["render"], out["image"], out["mask"]))
-            ssims.append(float(masked_ssim(out["render"].clamp(0, 1), out["image"].clamp(0, 1), out["mask"])[0]))
+            ssims.append(
+                float(masked_ssim(out["render"].clamp(0, 1), out["image"].clamp(0, 1), out["mask"])[0])
+            )
         results[name] = {
             "psnr": float(np.mean(psnrs)) if psnrs else float("nan"),
             "ssim": float(np.mean(ssims)) if ssims else float("nan"),

@@ -134,11 +134,19 @@ def load_fit_views(
         raise ValueError(f"{dataset.path}: no subject {subject!r}; it has {', '.join(dataset.subjects[:12])}")
     keys = dataset.select(subjects=subject, patterns=pattern)
     if not keys:
-        raise ValueError(f"{dataset.path}: subject {subject!r} has no rows with pattern {pattern!r}; "
-                         f"the dataset's patterns are {', '.join(dataset.patterns[:12])}")
+        raise ValueError(
+            f"{dataset.path}: subject {subject!r} has no rows with pattern {pattern!r}; "
+            f"the dataset's patterns are {', '.join(dataset.patterns[:12])}"
+        )
     if frame is None:
         # Frames from the small index, so no image row is read before the frame is known.
-        frame_of = dict(zip(dataset.index.column("key").to_pylist(), dataset.index.column("frame").to_pylist(), strict=True))
+        frame_of = dict(
+            zip(
+                dataset.index.column("key").to_pylist(),
+                dataset.index.column("frame").to_pylist(),
+                strict=True,
+            )
+        )
         frame = min(int(frame_of[k]) for k in keys)
     rows = [dataset.row(k) for k in dataset.select(subjects=subject, patterns=pattern, frames=int(frame))]
     frame = int(frame)
@@ -146,14 +154,18 @@ def load_fit_views(
         by_camera = {r.camera: r for r in rows}
         missing = [c for c in cameras if c not in by_camera]
         if missing:
-            raise ValueError(f"{dataset.path}: subject {subject!r} frame {frame} pattern {pattern!r} has no camera "
-                             f"{missing}; it has {sorted(by_camera)}")
+            raise ValueError(
+                f"{dataset.path}: subject {subject!r} frame {frame} pattern {pattern!r} has no camera "
+                f"{missing}; it has {sorted(by_camera)}"
+            )
         rows = [by_camera[c] for c in cameras]
     if not rows:
         raise ValueError(f"{dataset.path}: subject {subject!r} has no {pattern!r} rows at frame {frame}")
     sizes = {(r.width, r.height) for r in rows}
     if len(sizes) != 1:
-        raise ValueError(f"{dataset.path}: the chosen views have several image sizes {sorted(sizes)}; pick cameras of one size")
+        raise ValueError(
+            f"{dataset.path}: the chosen views have several image sizes {sorted(sizes)}; pick cameras of one size"
+        )
     matrix = read_learned_colour_matrix(dataset.path)
     images, masks, Ks = [], [], []
     for row in rows:
@@ -169,12 +181,17 @@ def load_fit_views(
         Ks.append(scale_intrinsics(row.K, image_scale))
     tracked = dataset.meshes().get(make_mesh_key(subject, frame))
     return FitViews(
-        images=torch.from_numpy(np.stack(images)), masks=torch.from_numpy(np.stack(masks)),
+        images=torch.from_numpy(np.stack(images)),
+        masks=torch.from_numpy(np.stack(masks)),
         K=torch.tensor(np.stack(Ks), dtype=torch.float32),
         w2c=torch.tensor(np.stack([r.w2c for r in rows]), dtype=torch.float32),
         tracked_vertices=None if tracked is None else torch.from_numpy(np.asarray(tracked, dtype=np.float32)),
-        subject=subject, frame=frame, dataset=dataset.name, pattern=pattern,
-        keys=[r.key for r in rows], cameras=[r.camera for r in rows],
+        subject=subject,
+        frame=frame,
+        dataset=dataset.name,
+        pattern=pattern,
+        keys=[r.key for r in rows],
+        cameras=[r.camera for r in rows],
     )
 
 
@@ -214,33 +231,54 @@ def load_relightable_model(stage1_run: Path, stage2_run: Path) -> RelightableMod
     stage2_run = Path(stage2_run)
     info_path = stage2_run / "run.json"
     if not info_path.is_file():
-        raise FileNotFoundError(f"{info_path}: not a stage-2 run folder (train one with `relightanyone train stage2`)")
+        raise FileNotFoundError(
+            f"{info_path}: not a stage-2 run folder (train one with `relightanyone train stage2`)"
+        )
     info = json.loads(info_path.read_text())
     checkpoint = load_checkpoint(stage2_run / CHECKPOINT_NAME)
     if checkpoint.get("single_stage"):
-        raise ValueError(f"{stage2_run}: a single-stage baseline run; fitting needs a stage-2 run on a stage-1 model")
+        raise ValueError(
+            f"{stage2_run}: a single-stage baseline run; fitting needs a stage-2 run on a stage-1 model"
+        )
     run = load_run(stage1_run)
     dataset_name = checkpoint["dataset"]
     if dataset_name not in run.datasets:
-        raise ValueError(f"{stage2_run}: stage 2 was trained on {dataset_name!r}, which stage-1 run {stage1_run} "
-                         f"does not know ({run.datasets}); pass the stage-1 run stage 2 was trained on")
+        raise ValueError(
+            f"{stage2_run}: stage 2 was trained on {dataset_name!r}, which stage-1 run {stage1_run} "
+            f"does not know ({run.datasets}); pass the stage-1 run stage 2 was trained on"
+        )
     dataset_path = Path(info["dataset"]["path"])
     if not (dataset_path / "lights.arrow").is_file():
-        raise FileNotFoundError(f"{dataset_path / 'lights.arrow'}: the OLAT rig of stage-2 run {stage2_run} is missing "
-                                "(the fit models the unknown lighting with that rig)")
+        raise FileNotFoundError(
+            f"{dataset_path / 'lights.arrow'}: the OLAT rig of stage-2 run {stage2_run} is missing "
+            "(the fit models the unknown lighting with that rig)"
+        )
     preset = Stage2Preset.from_json(checkpoint["preset"])
     centre, radius = head_frame(run.model.mesh_decoder.template_vertices)
-    stage2 = Stage2Model(run.model.binding, centre, radius, preset.sh_order, preset.base_channels, preset.max_channels)
+    stage2 = Stage2Model(
+        run.model.binding, centre, radius, preset.sh_order, preset.base_channels, preset.max_channels
+    )
     stage2.load_state_dict(checkpoint["model"])
     rows = NormalizedDataset(dataset_path).lights()
     if not rows:
-        raise ValueError(f"{dataset_path}: lights.arrow has no rows; the fit models the unknown lighting with that rig")
-    rig = olat_rig_from_table({name: [row[name] for row in rows] for name in rows[0]}, source=str(dataset_path / "lights.arrow"))
+        raise ValueError(
+            f"{dataset_path}: lights.arrow has no rows; the fit models the unknown lighting with that rig"
+        )
+    rig = olat_rig_from_table(
+        {name: [row[name] for row in rows] for name in rows[0]}, source=str(dataset_path / "lights.arrow")
+    )
     return RelightableModel(
-        stage1=run.model, lighting_code=run.model.lighting_codes[run.datasets.index(dataset_name)].detach().clone(),
-        stage2=stage2.eval().requires_grad_(False), stage2_preset=preset, rig=rig, olat_dataset=dataset_name,
-        sources={"stage1_run": str(Path(stage1_run).resolve()), "stage2_run": str(stage2_run.resolve()),
-                 "olat_dataset": str(dataset_path.resolve())},
+        stage1=run.model,
+        lighting_code=run.model.lighting_codes[run.datasets.index(dataset_name)].detach().clone(),
+        stage2=stage2.eval().requires_grad_(False),
+        stage2_preset=preset,
+        rig=rig,
+        olat_dataset=dataset_name,
+        sources={
+            "stage1_run": str(Path(stage1_run).resolve()),
+            "stage2_run": str(stage2_run.resolve()),
+            "olat_dataset": str(dataset_path.resolve()),
+        },
     )
 
 
@@ -252,7 +290,9 @@ def decode_codes(model: Stage1Model, z_id: torch.Tensor, z_l: torch.Tensor) -> t
     return vertices, assemble_gaussians(geometry_maps, colour_maps, vertices, model.binding, model.spacing)
 
 
-def locality_loss(current: tuple[torch.Tensor, Gaussians], reference: tuple[torch.Tensor, Gaussians], spacing: float) -> torch.Tensor:
+def locality_loss(
+    current: tuple[torch.Tensor, Gaussians], reference: tuple[torch.Tensor, Gaussians], spacing: float
+) -> torch.Tensor:
     """Mean squared change of decoded Gaussians and meshes (B samples) -> (B,).
 
     Positions, scales and mesh vertices are compared in texel spacings, rotations as unit quaternions,
@@ -270,8 +310,13 @@ def locality_loss(current: tuple[torch.Tensor, Gaussians], reference: tuple[torc
     return torch.stack(terms).sum(0)
 
 
-def locality_codes(z_id: torch.Tensor, training_codes: torch.Tensor, count: int, min_fraction: float,
-                   generator: np.random.Generator) -> torch.Tensor:
+def locality_codes(
+    z_id: torch.Tensor,
+    training_codes: torch.Tensor,
+    count: int,
+    min_fraction: float,
+    generator: np.random.Generator,
+) -> torch.Tensor:
     """``count`` codes between the fitted code (1, D) and random training codes (S, D) -> (count, D).
 
     ``z_r = z + t (z_k − z)`` with ``t ~ U(min_fraction, 1)``: other identities and the space towards them,
@@ -301,7 +346,9 @@ class Fitter:
         self.z_l = model.lighting_code.detach().reshape(1, -1)
         # Inversion starts at the mean identity; the unknown lighting starts as the calibrated full-on rig.
         self.z_id = torch.nn.Parameter(model.training_codes.mean(dim=0, keepdim=True).clone())
-        self.log_intensities = torch.nn.Parameter(model.rig.intensities.clamp(min=MIN_INTENSITY).log().clone())
+        self.log_intensities = torch.nn.Parameter(
+            model.rig.intensities.clamp(min=MIN_INTENSITY).log().clone()
+        )
         self.history: dict[str, list[dict[str, float]]] = {"inversion": [], "finetune": []}
         self.inversion_steps = 0
         self.finetune_steps = 0
@@ -332,24 +379,43 @@ class Fitter:
         cameras = camera_centres(w2c)
         count = len(view_index)
         normals = texel_mesh_normals(vertices, self.stage1.binding).expand(count, -1, -1)
-        params = self.stage2(gaussians.colours.expand(count, -1, -1), gaussians.means.expand(count, -1, -1), normals,
-                             cameras)
+        params = self.stage2(
+            gaussians.colours.expand(count, -1, -1), gaussians.means.expand(count, -1, -1), normals, cameras
+        )
         intensities = self.light_intensities()
-        relit = relight(params, gaussians.means.expand(count, -1, -1), cameras,
-                        self.model.rig.positions.expand(count, -1, -1), intensities.expand(count, -1, -1),
-                        self.stage2.head_centre, self.model.stage2_preset.lobe_normalization,
-                        self.model.stage2_preset.inverse_square)
+        relit = relight(
+            params,
+            gaussians.means.expand(count, -1, -1),
+            cameras,
+            self.model.rig.positions.expand(count, -1, -1),
+            intensities.expand(count, -1, -1),
+            self.stage2.head_centre,
+            self.model.stage2_preset.lobe_normalization,
+            self.model.stage2_preset.inverse_square,
+        )
         height, width = self.views.images.shape[-2:]
         # One splat call: the geometry is shared by the views, the relit colours are per camera (v, N, 3).
-        image, _, _ = rasterize(gaussians.means[0], gaussians.quats[0], gaussians.scales[0], gaussians.opacities[0],
-                                relit.colour, w2c, K, width, height)
+        image, _, _ = rasterize(
+            gaussians.means[0],
+            gaussians.quats[0],
+            gaussians.scales[0],
+            gaussians.opacities[0],
+            relit.colour,
+            w2c,
+            K,
+            width,
+            height,
+        )
         return image, vertices, gaussians
 
     def data_terms(self, view_index: list[int]) -> tuple[dict[str, torch.Tensor], torch.Tensor, Gaussians]:
         """Photometric and geometry terms (scalars) of some views, with the decoded mesh and Gaussians."""
         render, vertices, gaussians = self.render(view_index)
         target, mask = self.views.images[view_index], self.views.masks[view_index]
-        terms = {"l1": masked_l1(render, target, mask).mean(), "ssim": (1.0 - masked_ssim(render, target, mask)).mean()}
+        terms = {
+            "l1": masked_l1(render, target, mask).mean(),
+            "ssim": (1.0 - masked_ssim(render, target, mask)).mean(),
+        }
         if self.views.tracked_vertices is not None:
             terms["geometry"] = vertex_l2(vertices, self.views.tracked_vertices[None]).mean()
         return terms, vertices, gaussians
@@ -367,20 +433,33 @@ class Fitter:
         total = self.data_loss(terms) + self.settings.identity_weight * terms["identity"]
         return total, _logged(terms, total)
 
-    def finetune_loss(self, view_index: list[int], step: int, locality_weight: float) -> tuple[torch.Tensor, dict[str, float]]:
+    def finetune_loss(
+        self, view_index: list[int], step: int, locality_weight: float
+    ) -> tuple[torch.Tensor, dict[str, float]]:
         """Data terms + scale bound + final λ_t ‖δt‖² + ``locality_weight`` × locality regulariser."""
         terms, _, gaussians = self.data_terms(view_index)
         terms["scale"] = scale_bound_loss(gaussians.scales_preclip).mean()
         terms["offset"] = offset_l2(gaussians.offsets).mean()
-        total = self.data_loss(terms) + self.weights.scale * terms["scale"] + self.weights.offset_end * terms["offset"]
+        total = (
+            self.data_loss(terms)
+            + self.weights.scale * terms["scale"]
+            + self.weights.offset_end * terms["offset"]
+        )
         if locality_weight > 0:
             rng = iteration_generator(self.settings.seed, step, LOCALITY_STREAM)
-            codes = locality_codes(self.z_id.detach(), self.model.training_codes, self.settings.locality_codes,
-                                   self.settings.locality_min_fraction, rng)
+            codes = locality_codes(
+                self.z_id.detach(),
+                self.model.training_codes,
+                self.settings.locality_codes,
+                self.settings.locality_min_fraction,
+                rng,
+            )
             z_l = self.z_l.expand(codes.shape[0], -1)
             with torch.no_grad():
                 reference = decode_codes(self.reference, codes, z_l)
-            terms["locality"] = locality_loss(decode_codes(self.stage1, codes, z_l), reference, self.spacing).mean()
+            terms["locality"] = locality_loss(
+                decode_codes(self.stage1, codes, z_l), reference, self.spacing
+            ).mean()
             total = total + locality_weight * terms["locality"]
         return total, _logged(terms, total)
 
@@ -392,9 +471,13 @@ class Fitter:
         self.z_id.requires_grad_(True)
         self.log_intensities.requires_grad_(True)
         optimizer = torch.optim.Adam([self.z_id, self.log_intensities], lr=self.settings.inversion_lr)
-        return self._optimize("inversion", optimizer, iterations, lambda step, views: self.inversion_loss(views))
+        return self._optimize(
+            "inversion", optimizer, iterations, lambda step, views: self.inversion_loss(views)
+        )
 
-    def finetune(self, iterations: int | None = None, locality_weight: float | None = None) -> list[dict[str, float]]:
+    def finetune(
+        self, iterations: int | None = None, locality_weight: float | None = None
+    ) -> list[dict[str, float]]:
         """Finetune the stage-1 decoders around the inversion result (z_id and lighting fixed)."""
         iterations = self.settings.finetune_iterations if iterations is None else iterations
         weight = self.settings.locality_weight if locality_weight is None else float(locality_weight)
@@ -404,19 +487,30 @@ class Fitter:
         for parameter in parameters:
             parameter.requires_grad_(True)
         optimizer = torch.optim.Adam(parameters, lr=self.settings.finetune_lr)
-        return self._optimize("finetune", optimizer, iterations, lambda step, views: self.finetune_loss(views, step, weight))
+        return self._optimize(
+            "finetune", optimizer, iterations, lambda step, views: self.finetune_loss(views, step, weight)
+        )
 
-    def _optimize(self, phase: str, optimizer: torch.optim.Optimizer, iterations: int, loss_fn) -> list[dict[str, float]]:
+    def _optimize(
+        self, phase: str, optimizer: torch.optim.Optimizer, iterations: int, loss_fn
+    ) -> list[dict[str, float]]:
         from tqdm import tqdm
 
         offset = 0 if phase == "inversion" else 1
         start = self.inversion_steps if phase == "inversion" else self.finetune_steps
         logged = []
-        for step in tqdm(range(start, start + iterations), desc=f"fit {self.views.subject}: {phase}", unit="it",
-                         disable=not self.settings.progress, dynamic_ncols=True):
+        for step in tqdm(
+            range(start, start + iterations),
+            desc=f"fit {self.views.subject}: {phase}",
+            unit="it",
+            disable=not self.settings.progress,
+            dynamic_ncols=True,
+        ):
             total, terms = loss_fn(step, self.step_views(step, offset))
             if not math.isfinite(float(total.detach())):
-                raise FloatingPointError(f"fit {phase} step {step}: the loss became {float(total)}; lower the learning rate")
+                raise FloatingPointError(
+                    f"fit {phase} step {step}: the loss became {float(total)}; lower the learning rate"
+                )
             optimizer.zero_grad(set_to_none=True)
             total.backward()
             optimizer.step()
@@ -439,21 +533,37 @@ class Fitter:
         """The fitted subject as a :class:`FittedAvatar` (decoded Gaussians, frozen stage 2, rig, lighting)."""
         vertices, gaussians = decode_codes(self.stage1, self.z_id, self.z_l)
         info = {
-            "subject": self.views.subject, "dataset": self.views.dataset, "frame": self.views.frame,
-            "pattern": self.views.pattern, "cameras": self.views.cameras, "keys": self.views.keys,
-            "olat_dataset": self.model.olat_dataset, "settings": asdict(self.settings),
+            "subject": self.views.subject,
+            "dataset": self.views.dataset,
+            "frame": self.views.frame,
+            "pattern": self.views.pattern,
+            "cameras": self.views.cameras,
+            "keys": self.views.keys,
+            "olat_dataset": self.model.olat_dataset,
+            "settings": asdict(self.settings),
             "iterations": {"inversion": self.inversion_steps, "finetune": self.finetune_steps},
             "mesh": "tracked" if self.views.tracked_vertices is not None else "decoded",
-            "final_losses": self.evaluate(), "z_id": self.z_id[0].tolist(), **self.model.sources,
+            "final_losses": self.evaluate(),
+            "z_id": self.z_id[0].tolist(),
+            **self.model.sources,
         }
         info.update(metadata or {})
         tracked = self.views.tracked_vertices
         return FittedAvatar(
-            means=gaussians.means[0].clone(), quats=gaussians.quats[0].clone(), scales=gaussians.scales[0].clone(),
-            opacities=gaussians.opacities[0].clone(), colours=gaussians.colours[0].clone(), vertices=vertices[0].clone(),
-            tracked_vertices=None if tracked is None else tracked.clone(), binding=self.stage1.binding,
-            stage2=copy.deepcopy(self.stage2), stage1_preset=self.stage1.preset, stage2_preset=self.model.stage2_preset,
-            rig=self.model.rig, scene_intensities=self.light_intensities().detach().clone(), metadata=info,
+            means=gaussians.means[0].clone(),
+            quats=gaussians.quats[0].clone(),
+            scales=gaussians.scales[0].clone(),
+            opacities=gaussians.opacities[0].clone(),
+            colours=gaussians.colours[0].clone(),
+            vertices=vertices[0].clone(),
+            tracked_vertices=None if tracked is None else tracked.clone(),
+            binding=self.stage1.binding,
+            stage2=copy.deepcopy(self.stage2),
+            stage1_preset=self.stage1.preset,
+            stage2_preset=self.model.stage2_preset,
+            rig=self.model.rig,
+            scene_intensities=self.light_intensities().detach().clone(),
+            metadata=info,
         )
 
 
@@ -480,9 +590,14 @@ def fit_subject(
     torch.manual_seed(settings.seed)
     model = load_relightable_model(stage1_run, stage2_run)
     views = load_fit_views(data, subject, frame, cameras, pattern, image_scale)
-    if views.tracked_vertices is not None and views.tracked_vertices.shape != model.stage1.mesh_decoder.template_vertices.shape:
-        raise ValueError(f"{data}: tracked mesh of {subject!r} frame {views.frame} has {views.tracked_vertices.shape[0]} "
-                         f"vertices, the model's template has {model.stage1.mesh_decoder.template_vertices.shape[0]}")
+    if (
+        views.tracked_vertices is not None
+        and views.tracked_vertices.shape != model.stage1.mesh_decoder.template_vertices.shape
+    ):
+        raise ValueError(
+            f"{data}: tracked mesh of {subject!r} frame {views.frame} has {views.tracked_vertices.shape[0]} "
+            f"vertices, the model's template has {model.stage1.mesh_decoder.template_vertices.shape[0]}"
+        )
     fitter = Fitter(model, views, settings)
     fitter.invert()
     fitter.finetune()

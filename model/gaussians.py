@@ -32,7 +32,9 @@ def geometry_output_bias() -> torch.Tensor:
     """(11,) initial geometry-map value: no offset, identity rotation, INITIAL_SCALE, INITIAL_OPACITY."""
     scale_raw = math.log(math.expm1(INITIAL_SCALE * _SOFTPLUS_ZERO))
     opacity_raw = math.log(INITIAL_OPACITY / (1.0 - INITIAL_OPACITY))
-    return torch.tensor([0, 0, 0, 1, 0, 0, 0, scale_raw, scale_raw, scale_raw, opacity_raw], dtype=torch.float32)
+    return torch.tensor(
+        [0, 0, 0, 1, 0, 0, 0, scale_raw, scale_raw, scale_raw, opacity_raw], dtype=torch.float32
+    )
 
 
 def colour_output_bias() -> torch.Tensor:
@@ -105,7 +107,10 @@ def texel_spacing(vertices: torch.Tensor, faces: torch.Tensor, valid_texels: int
     vertices (V, 3), faces (F, 3).
     """
     corners = vertices[faces.long()]
-    area = 0.5 * torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).norm(dim=-1).sum()
+    area = (
+        0.5
+        * torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).norm(dim=-1).sum()
+    )
     if valid_texels <= 0 or float(area) <= 0:
         raise ValueError("cannot derive a texel spacing from an empty mesh or an empty UV binding")
     return math.sqrt(float(area) / valid_texels)

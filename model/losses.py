@@ -20,9 +20,13 @@ METRES_TO_MM = 1000.0
 
 def _check_images(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> None:
     if render.shape != target.shape or render.ndim != 4:
-        raise ValueError(f"render and target must both be (B, C, H, W); got {tuple(render.shape)}, {tuple(target.shape)}")
+        raise ValueError(
+            f"render and target must both be (B, C, H, W); got {tuple(render.shape)}, {tuple(target.shape)}"
+        )
     if mask.shape != (render.shape[0], 1, *render.shape[2:]):
-        raise ValueError(f"mask must be (B, 1, H, W) = {(render.shape[0], 1, *render.shape[2:])}, got {tuple(mask.shape)}")
+        raise ValueError(
+            f"mask must be (B, 1, H, W) = {(render.shape[0], 1, *render.shape[2:])}, got {tuple(mask.shape)}"
+        )
 
 
 def _per_sample_masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -51,7 +55,9 @@ def masked_ssim(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) 
     return _per_sample_masked_mean(kornia_ssim(render * mask, target * mask, SSIM_WINDOW), mask)
 
 
-def masked_psnr(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, max_value: float = 1.0) -> float:
+def masked_psnr(
+    render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, max_value: float = 1.0
+) -> float:
     """PSNR in dB over masked pixels (images clamped to [0, max_value]). Shapes as :func:`masked_l1`."""
     _check_images(render, target, mask)
     weight = mask.expand_as(render)
@@ -66,7 +72,9 @@ def vertex_l2(
     """Per-sample mean squared vertex distance in mm², (B,). vertices, tracked_vertices (B, V, 3) in metres;
     has_mesh (B,) 0/1 zeroes samples without a tracked mesh."""
     if vertices.shape != tracked_vertices.shape:
-        raise ValueError(f"decoded mesh {tuple(vertices.shape)} and tracked mesh {tuple(tracked_vertices.shape)} differ")
+        raise ValueError(
+            f"decoded mesh {tuple(vertices.shape)} and tracked mesh {tuple(tracked_vertices.shape)} differ"
+        )
     per_sample = (((vertices - tracked_vertices) * METRES_TO_MM) ** 2).sum(-1).mean(-1)
     return per_sample if has_mesh is None else per_sample * has_mesh
 
@@ -76,8 +84,12 @@ def scale_bound_loss(scales_preclip: torch.Tensor) -> torch.Tensor:
 
     1/s below MIN_SCALE, (s − MAX_SCALE)² above MAX_SCALE, 0 in between.
     """
-    below = torch.where(scales_preclip < MIN_SCALE, 1.0 / scales_preclip.clamp(min=1e-6), torch.zeros_like(scales_preclip))
-    above = torch.where(scales_preclip > MAX_SCALE, (scales_preclip - MAX_SCALE) ** 2, torch.zeros_like(scales_preclip))
+    below = torch.where(
+        scales_preclip < MIN_SCALE, 1.0 / scales_preclip.clamp(min=1e-6), torch.zeros_like(scales_preclip)
+    )
+    above = torch.where(
+        scales_preclip > MAX_SCALE, (scales_preclip - MAX_SCALE) ** 2, torch.zeros_like(scales_preclip)
+    )
     return (below + above).mean(dim=(1, 2))
 
 

@@ -32,7 +32,9 @@ def decoder_activation_floats(preset: Stage1Preset) -> int:
     return 2 * total
 
 
-def estimate_training_memory(preset: Stage1Preset, parameter_count: int, gaussian_count: int) -> dict[str, int]:
+def estimate_training_memory(
+    preset: Stage1Preset, parameter_count: int, gaussian_count: int
+) -> dict[str, int]:
     """Bytes by component for one training process; ``total`` sums them."""
     estimate = {
         "parameters": parameter_count * FLOAT_BYTES,
@@ -40,7 +42,8 @@ def estimate_training_memory(preset: Stage1Preset, parameter_count: int, gaussia
         "optimizer_state": 2 * parameter_count * FLOAT_BYTES,
         "decoder_activations": preset.batch_size * decoder_activation_floats(preset) * FLOAT_BYTES,
         "gaussians": preset.batch_size * gaussian_count * FLOATS_PER_GAUSSIAN * FLOAT_BYTES,
-        "rasterizer": preset.batch_size * preset.crop_size**2 * FLOATS_PER_PIXEL * FLOAT_BYTES + COMPOSITING_CHUNK_BYTES,
+        "rasterizer": preset.batch_size * preset.crop_size**2 * FLOATS_PER_PIXEL * FLOAT_BYTES
+        + COMPOSITING_CHUNK_BYTES,
     }
     estimate["total"] = sum(estimate.values())
     return estimate

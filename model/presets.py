@@ -207,7 +207,9 @@ class Stage2Preset:
         if self.base_channels < 1 or self.max_channels < self.base_channels:
             raise ValueError(f"stage-2 preset {self.name!r}: need 1 <= base_channels <= max_channels")
         if self.batch_size < 1 or self.iterations < 1 or self.crop_size < 8:
-            raise ValueError(f"stage-2 preset {self.name!r}: batch_size, iterations must be positive, crop_size >= 8")
+            raise ValueError(
+                f"stage-2 preset {self.name!r}: batch_size, iterations must be positive, crop_size >= 8"
+            )
         if not 0.0 <= self.full_on_fraction <= 1.0:
             raise ValueError(f"stage-2 preset {self.name!r}: full_on_fraction must be in [0, 1]")
 
@@ -227,23 +229,54 @@ class Stage2Preset:
 
 STAGE2_PRESETS: dict[str, Stage2Preset] = {
     "tiny": Stage2Preset(
-        name="tiny", sh_order=3, base_channels=16, max_channels=64, crop_size=128, batch_size=4,
-        iterations=600, normal_anneal_iterations=200, albedo_anneal_iterations=200,
+        name="tiny",
+        sh_order=3,
+        base_channels=16,
+        max_channels=64,
+        crop_size=128,
+        batch_size=4,
+        iterations=600,
+        normal_anneal_iterations=200,
+        albedo_anneal_iterations=200,
     ),
     "demo": Stage2Preset(
-        name="demo", sh_order=4, base_channels=16, max_channels=128, crop_size=128, batch_size=4,
-        iterations=3000, normal_anneal_iterations=1000, albedo_anneal_iterations=1000, checkpoint_every=250,
+        name="demo",
+        sh_order=4,
+        base_channels=16,
+        max_channels=128,
+        crop_size=128,
+        batch_size=4,
+        iterations=3000,
+        normal_anneal_iterations=1000,
+        albedo_anneal_iterations=1000,
+        checkpoint_every=250,
         log_every=20,
     ),
     "small": Stage2Preset(
-        name="small", sh_order=6, base_channels=16, max_channels=256, crop_size=512, batch_size=8,
-        iterations=60_000, normal_anneal_iterations=10_000, albedo_anneal_iterations=20_000,
-        checkpoint_every=1000, log_every=50,
+        name="small",
+        sh_order=6,
+        base_channels=16,
+        max_channels=256,
+        crop_size=512,
+        batch_size=8,
+        iterations=60_000,
+        normal_anneal_iterations=10_000,
+        albedo_anneal_iterations=20_000,
+        checkpoint_every=1000,
+        log_every=50,
     ),
     "paper": Stage2Preset(
-        name="paper", sh_order=8, base_channels=16, max_channels=256, crop_size=1024, batch_size=8,
-        iterations=300_000, normal_anneal_iterations=10_000, albedo_anneal_iterations=100_000,
-        checkpoint_every=5000, log_every=100,
+        name="paper",
+        sh_order=8,
+        base_channels=16,
+        max_channels=256,
+        crop_size=1024,
+        batch_size=8,
+        iterations=300_000,
+        normal_anneal_iterations=10_000,
+        albedo_anneal_iterations=100_000,
+        checkpoint_every=5000,
+        log_every=100,
     ),
 }
 
@@ -253,4 +286,6 @@ def get_stage2_preset(name: str) -> Stage2Preset:
     try:
         return STAGE2_PRESETS[name]
     except KeyError:
-        raise ValueError(f"unknown stage-2 preset {name!r}; expected one of {', '.join(STAGE2_PRESETS)}") from None
+        raise ValueError(
+            f"unknown stage-2 preset {name!r}; expected one of {', '.join(STAGE2_PRESETS)}"
+        ) from None

@@ -149,10 +149,18 @@ def relight(
     diffuse = diffuse_color(params.albedo, params.transfer, light_sh)
     lobes = reflected_view_directions(positions, camera_positions, params.normals)
     specular = specular_point_lights(
-        positions, lobes, params.roughness, light_positions, light_intensities, params.visibility,
-        inverse_square=inverse_square, normalization=normalization,
+        positions,
+        lobes,
+        params.roughness,
+        light_positions,
+        light_intensities,
+        params.visibility,
+        inverse_square=inverse_square,
+        normalization=normalization,
     )
-    return RelitColours(colour=combine_diffuse_specular(diffuse, specular), diffuse=diffuse, specular=specular)
+    return RelitColours(
+        colour=combine_diffuse_specular(diffuse, specular), diffuse=diffuse, specular=specular
+    )
 
 
 def camera_centres(w2c: torch.Tensor) -> torch.Tensor:
@@ -161,7 +169,9 @@ def camera_centres(w2c: torch.Tensor) -> torch.Tensor:
     return -(rotation.transpose(1, 2) @ translation[..., None])[..., 0]
 
 
-def pattern_light_indices(pattern: str, light_patterns: dict[str, int], light_count: int, source: str) -> list[int]:
+def pattern_light_indices(
+    pattern: str, light_patterns: dict[str, int], light_count: int, source: str
+) -> list[int]:
     """Rig lights that are on in an image pattern.
 
     ``full`` is every light; ``olat-KKK`` is the light whose ``lights.arrow`` row names that pattern (or,
@@ -171,8 +181,8 @@ def pattern_light_indices(pattern: str, light_patterns: dict[str, int], light_co
         return list(range(light_count))
     if pattern in light_patterns:
         return [light_patterns[pattern]]
-    if pattern.startswith(OLAT_PREFIX) and pattern[len(OLAT_PREFIX):].isdigit():
-        index = int(pattern[len(OLAT_PREFIX):])
+    if pattern.startswith(OLAT_PREFIX) and pattern[len(OLAT_PREFIX) :].isdigit():
+        index = int(pattern[len(OLAT_PREFIX) :])
         if index < light_count and not light_patterns:
             return [index]
     raise ValueError(

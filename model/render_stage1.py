@@ -42,12 +42,16 @@ class Stage1Run:
         matches = [i for i, s in enumerate(self.subjects) if s.split("/", 1)[1] == subject]
         if len(matches) == 1:
             return matches[0]
-        hint = "it exists in several datasets, name it as <dataset>/<subject>" if matches else "unknown subject"
+        hint = (
+            "it exists in several datasets, name it as <dataset>/<subject>" if matches else "unknown subject"
+        )
         raise ValueError(f"{self.path}: {hint}: {subject!r}; known: {', '.join(self.subjects[:12])}...")
 
     def dataset_index(self, name: str) -> int:
         if name not in self.datasets:
-            raise ValueError(f"{self.path}: unknown dataset {name!r} for --lighting-code; known: {', '.join(self.datasets)}")
+            raise ValueError(
+                f"{self.path}: unknown dataset {name!r} for --lighting-code; known: {', '.join(self.datasets)}"
+            )
         return self.datasets.index(name)
 
 
@@ -60,7 +64,9 @@ def load_run(run_dir: Path) -> Stage1Run:
     run_dir = Path(run_dir)
     info_path = run_dir / RUN_INFO_NAME
     if not info_path.is_file():
-        raise FileNotFoundError(f"{info_path}: not a stage-1 run folder (train one with `relightanyone train stage1`)")
+        raise FileNotFoundError(
+            f"{info_path}: not a stage-1 run folder (train one with `relightanyone train stage1`)"
+        )
     info = json.loads(info_path.read_text())
     checkpoint = load_checkpoint(run_dir / CHECKPOINT_NAME)
     preset = Stage1Preset.from_json(checkpoint["preset"])
@@ -68,7 +74,11 @@ def load_run(run_dir: Path) -> Stage1Run:
     uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, preset.uv_size)
     binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
     model = Stage1Model(
-        preset, torch.from_numpy(mesh.vertices).float(), binding, len(checkpoint["subjects"]), len(checkpoint["datasets"])
+        preset,
+        torch.from_numpy(mesh.vertices).float(),
+        binding,
+        len(checkpoint["subjects"]),
+        len(checkpoint["datasets"]),
     )
     model.load_state_dict(checkpoint["model"])
     model.eval()
@@ -82,7 +92,9 @@ def load_run(run_dir: Path) -> Stage1Run:
     )
 
 
-def subject_cameras(run: Stage1Run, subject_index: int, limit: int | None = None) -> tuple[list[str], np.ndarray, np.ndarray, int, int]:
+def subject_cameras(
+    run: Stage1Run, subject_index: int, limit: int | None = None
+) -> tuple[list[str], np.ndarray, np.ndarray, int, int]:
     """Full-on cameras of the subject's first frame in its dataset: names, K (C, 3, 3), w2c (C, 4, 4), width, height.
 
     Cameras whose image size differs from the first one are skipped (one render call per size).
@@ -98,12 +110,20 @@ def subject_cameras(run: Stage1Run, subject_index: int, limit: int | None = None
     rows = [dataset.row(k) for k in keys if int(k.split("/")[2]) == first_frame]
     width, height = rows[0].width, rows[0].height
     rows = [r for r in rows if (r.width, r.height) == (width, height)][:limit]
-    return [r.camera for r in rows], np.stack([r.K for r in rows]), np.stack([r.w2c for r in rows]), width, height
+    return (
+        [r.camera for r in rows],
+        np.stack([r.K for r in rows]),
+        np.stack([r.w2c for r in rows]),
+        width,
+        height,
+    )
 
 
 @torch.no_grad()
 def decode(run: Stage1Run, subject_index: int, lighting_index: int) -> Gaussians:
-    _, gaussians = run.model(torch.tensor([subject_index]), torch.tensor([lighting_index]), use_lighting=run.use_lighting)
+    _, gaussians = run.model(
+        torch.tensor([subject_index]), torch.tensor([lighting_index]), use_lighting=run.use_lighting
+    )
     return gaussians
 
 
@@ -124,8 +144,15 @@ def render_with_alpha(gaussians: Gaussians, K: np.ndarray, w2c: np.ndarray, widt
     from relightanyone.render.rasterize import rasterize
 
     image, alpha, _ = rasterize(
-        gaussians.means[0], gaussians.quats[0], gaussians.scales[0], gaussians.opacities[0], gaussians.colours[0],
-        torch.tensor(w2c, dtype=torch.float32), torch.tensor(K, dtype=torch.float32), width, height,
+        gaussians.means[0],
+        gaussians.quats[0],
+        gaussians.scales[0],
+        gaussians.opacities[0],
+        gaussians.colours[0],
+        torch.tensor(w2c, dtype=torch.float32),
+        torch.tensor(K, dtype=torch.float32),
+        width,
+        height,
     )
     return image, alpha
 
@@ -164,7 +191,9 @@ def render_subject(
     out_dir.mkdir(parents=True, exist_ok=True)
     images, alphas = [], []
     for index in tqdm(range(len(names)), desc=f"render {run.subjects[subject_index]}", unit="view"):
-        image, alpha = render_with_alpha(gaussians, K[index : index + 1], w2c[index : index + 1], width, height)
+        image, alpha = render_with_alpha(
+            gaussians, K[index : index + 1], w2c[index : index + 1], width, height
+        )
         images.append(image)
         alphas.append(alpha)
     files = []
@@ -173,17 +202,30 @@ def render_subject(
         path = out_dir / f"{safe_subject}_{lighting}_{name}.png"
         save_png(path, to_display(image[0]))
         files.append(str(path))
-    report = {"subject": run.subjects[subject_index], "lighting_code": lighting, "cameras": cameras, "files": files}
+    report = {
+        "subject": run.subjects[subject_index],
+        "lighting_code": lighting,
+        "cameras": cameras,
+        "files": files,
+    }
     if lighting != own_dataset:
         own = decode(run, subject_index, run.dataset_index(own_dataset))
-        own_images = [render_with_alpha(own, K[i : i + 1], w2c[i : i + 1], width, height) for i in range(len(names))]
+        own_images = [
+            render_with_alpha(own, K[i : i + 1], w2c[i : i + 1], width, height) for i in range(len(names))
+        ]
         swapped_colour = mean_foreground_colour(torch.cat(images), torch.cat(alphas))
-        own_colour = mean_foreground_colour(torch.cat([i for i, _ in own_images]), torch.cat([a for _, a in own_images]))
-        report.update(colour_shift_report(own_colour, swapped_colour, own_dataset, same_geometry(own, gaussians)))
+        own_colour = mean_foreground_colour(
+            torch.cat([i for i, _ in own_images]), torch.cat([a for _, a in own_images])
+        )
+        report.update(
+            colour_shift_report(own_colour, swapped_colour, own_dataset, same_geometry(own, gaussians))
+        )
     return report
 
 
-def colour_shift_report(own: np.ndarray, swapped: np.ndarray, own_dataset: str, geometry_identical: bool) -> dict:
+def colour_shift_report(
+    own: np.ndarray, swapped: np.ndarray, own_dataset: str, geometry_identical: bool
+) -> dict:
     shift = swapped - own
     return {
         "own_lighting_code": own_dataset,
@@ -210,15 +252,23 @@ def lighting_alignment_grid(run: Stage1Run, out_path: Path) -> dict:
         own_image, own_alpha = render_with_alpha(own, K, w2c, width, height)
         row = []
         for lighting in run.datasets:
-            gaussians = own if lighting == dataset else decode(run, subject_index, run.dataset_index(lighting))
-            image, alpha = (own_image, own_alpha) if lighting == dataset else render_with_alpha(gaussians, K, w2c, width, height)
+            gaussians = (
+                own if lighting == dataset else decode(run, subject_index, run.dataset_index(lighting))
+            )
+            image, alpha = (
+                (own_image, own_alpha)
+                if lighting == dataset
+                else render_with_alpha(gaussians, K, w2c, width, height)
+            )
             display = to_display(image[0])
             size = size or display.shape[:2]
             row.append(_fit(display, size))
             if lighting != dataset:
                 shifts[f"{run.subjects[subject_index]} under {lighting}"] = colour_shift_report(
-                    mean_foreground_colour(own_image, own_alpha), mean_foreground_colour(image, alpha),
-                    dataset, same_geometry(own, gaussians),
+                    mean_foreground_colour(own_image, own_alpha),
+                    mean_foreground_colour(image, alpha),
+                    dataset,
+                    same_geometry(own, gaussians),
                 )
         rows.append(row)
     out_path = Path(out_path)

@@ -25,7 +25,9 @@ def iteration_generator(seed: int, iteration: int, stream: int, index: int = 0) 
     return np.random.default_rng([int(seed), int(iteration), int(stream), int(index)])
 
 
-def balanced_batch(views_per_dataset: list[int], batch_size: int, seed: int, iteration: int) -> list[tuple[int, int]]:
+def balanced_batch(
+    views_per_dataset: list[int], batch_size: int, seed: int, iteration: int
+) -> list[tuple[int, int]]:
     """``batch_size`` pairs (dataset index, view index within that dataset): the global batch of one iteration.
 
     Datasets are drawn uniformly (with replacement), then a view uniformly within the dataset.

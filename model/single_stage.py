@@ -59,7 +59,9 @@ class SingleStageModel(nn.Module):
     ) -> None:
         super().__init__()
         if binding.uv_size != preset.uv_size:
-            raise ValueError(f"UV binding is {binding.uv_size}² but preset {preset.name!r} needs {preset.uv_size}²")
+            raise ValueError(
+                f"UV binding is {binding.uv_size}² but preset {preset.name!r} needs {preset.uv_size}²"
+            )
         template_vertices = torch.as_tensor(template_vertices, dtype=torch.float32)
         self.preset = preset
         self.sh_order = sh_order
@@ -70,12 +72,20 @@ class SingleStageModel(nn.Module):
         self.identity_codes = nn.Parameter(torch.randn(subject_count, preset.z_id_dim) * CODE_INIT_STD)
         self.mesh_decoder = MeshDecoder(preset.z_id_dim, template_vertices, preset.mesh_hidden)
         sizes = (preset.uv_size, preset.start_channels, preset.min_channels)
-        self.geometry_decoder = ConvUVDecoder(preset.z_id_dim, GEOMETRY_CHANNELS, *sizes, output_bias=geometry_output_bias())
+        self.geometry_decoder = ConvUVDecoder(
+            preset.z_id_dim, GEOMETRY_CHANNELS, *sizes, output_bias=geometry_output_bias()
+        )
         self.reflectance_decoder = ConvUVDecoder(
-            preset.z_id_dim, view_independent_channels(sh_order), *sizes, output_bias=view_independent_output_bias(sh_order)
+            preset.z_id_dim,
+            view_independent_channels(sh_order),
+            *sizes,
+            output_bias=view_independent_output_bias(sh_order),
         )
         self.view_decoder = ConvUVDecoder(
-            preset.z_id_dim + VIEW_CHANNELS, VIEW_DEPENDENT_CHANNELS, *sizes, output_bias=view_dependent_output_bias()
+            preset.z_id_dim + VIEW_CHANNELS,
+            VIEW_DEPENDENT_CHANNELS,
+            *sizes,
+            output_bias=view_dependent_output_bias(),
         )
 
     @property

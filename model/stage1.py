@@ -96,7 +96,9 @@ def setup_process_group() -> ProcessGroup:
     return ProcessGroup(rank=rank, world_size=world_size, device=device)
 
 
-def build_model(preset: Stage1Preset, data: Stage1Data, uncalibrated: tuple[str, ...], template_path: Path) -> Stage1Model:
+def build_model(
+    preset: Stage1Preset, data: Stage1Data, uncalibrated: tuple[str, ...], template_path: Path
+) -> Stage1Model:
     """The stage-1 model for ``data``'s subjects and datasets, bound to the template at the preset's UV size."""
     from relightanyone.render.mesh import load_obj
     from relightanyone.render.uv_binding import UVBinding
@@ -108,7 +110,9 @@ def build_model(preset: Stage1Preset, data: Stage1Data, uncalibrated: tuple[str,
     uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, preset.uv_size)
     binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
     flags = torch.tensor([name in uncalibrated for name in data.names])
-    return Stage1Model(preset, torch.from_numpy(mesh.vertices).float(), binding, len(data.subjects), len(data.names), flags)
+    return Stage1Model(
+        preset, torch.from_numpy(mesh.vertices).float(), binding, len(data.subjects), len(data.names), flags
+    )
 
 
 def average_gradients(model: torch.nn.Module, world_size: int) -> None:
@@ -132,7 +136,9 @@ def weights_checksum(model: torch.nn.Module) -> float:
     return float(sum(p.detach().double().sum() for p in model.parameters()))
 
 
-def _check_resumable(checkpoint: dict, preset: Stage1Preset, data: Stage1Data, config: Stage1Config, path: Path) -> None:
+def _check_resumable(
+    checkpoint: dict, preset: Stage1Preset, data: Stage1Data, config: Stage1Config, path: Path
+) -> None:
     saved = checkpoint["preset"]
     differing = [name for name in ARCHITECTURE_FIELDS if saved[name] != getattr(preset, name)]
     if differing or checkpoint["subjects"] != data.subjects or checkpoint["datasets"] != data.names:
@@ -142,7 +148,9 @@ def _check_resumable(checkpoint: dict, preset: Stage1Preset, data: Stage1Data, c
             "use another --out folder or --no-resume"
         )
     if checkpoint["warmup"] != config.warmup or checkpoint["seed"] != config.seed:
-        raise ValueError(f"{path}: the checkpoint is from a run with another seed or warm-up setting; use another --out")
+        raise ValueError(
+            f"{path}: the checkpoint is from a run with another seed or warm-up setting; use another --out"
+        )
 
 
 def _write_json(path: Path, payload: dict) -> None:
@@ -180,9 +188,11 @@ def train_stage1(config: Stage1Config) -> dict:
         shutil.copyfile(data.template_path, out / TEMPLATE_NAME)
         _write_json(out / RUN_INFO_NAME, _run_info(config, data, group))
         parameter_count = sum(p.numel() for p in model.parameters())
-        print(f"stage 1{' colour warm-up' if config.warmup else ''}: {len(data.subjects)} subjects in "
-              f"{len(data.names)} datasets, {model.gaussian_count} Gaussians per subject, "
-              f"{parameter_count / 1e6:.2f} M parameters, {group.world_size} process(es)")
+        print(
+            f"stage 1{' colour warm-up' if config.warmup else ''}: {len(data.subjects)} subjects in "
+            f"{len(data.names)} datasets, {model.gaussian_count} Gaussians per subject, "
+            f"{parameter_count / 1e6:.2f} M parameters, {group.world_size} process(es)"
+        )
         print(format_memory(estimate_training_memory(preset, parameter_count, model.gaussian_count)))
         if start:
             print(f"resuming {checkpoint_path} at iteration {start}")
@@ -196,8 +206,12 @@ def train_stage1(config: Stage1Config) -> dict:
     global_batch = preset.batch_size * group.world_size
     first_sample = group.rank * preset.batch_size
     progress = tqdm(
-        total=preset.iterations, initial=start, disable=not (config.progress and group.is_main),
-        desc="stage1 warm-up" if config.warmup else "stage1", unit="it", dynamic_ncols=True,
+        total=preset.iterations,
+        initial=start,
+        disable=not (config.progress and group.is_main),
+        desc="stage1 warm-up" if config.warmup else "stage1",
+        unit="it",
+        dynamic_ncols=True,
     )
     step_seconds = 0.0
     steps = 0
@@ -206,15 +220,24 @@ def train_stage1(config: Stage1Config) -> dict:
         pairs = balanced_batch(data.views_per_dataset, global_batch, config.seed, iteration)
         pairs = pairs[first_sample : first_sample + preset.batch_size]
         views = [data.train_views[d][v] for d, v in pairs]
-        batch = {k: v.to(group.device) for k, v in data.load_batch(
-            views, preset.crop_size, config.seed, iteration, first_sample).items()}
+        batch = {
+            k: v.to(group.device)
+            for k, v in data.load_batch(views, preset.crop_size, config.seed, iteration, first_sample).items()
+        }
         vertices, gaussians = model(batch["subject_index"], batch["dataset_index"], use_lighting=use_lighting)
         render, _ = render_gaussians(gaussians, batch["K"], batch["w2c"], preset.crop_size, preset.crop_size)
         if config.warmup:
             render = model.dataset_colour(render, batch["dataset_index"])
         loss, terms = stage1_loss(
-            render, batch["image"], batch["mask"], vertices, batch["tracked"], gaussians, preset.loss,
-            offset_weight(iteration, preset.loss, preset.offset_anneal_iterations), batch["has_mesh"],
+            render,
+            batch["image"],
+            batch["mask"],
+            vertices,
+            batch["tracked"],
+            gaussians,
+            preset.loss,
+            offset_weight(iteration, preset.loss, preset.offset_anneal_iterations),
+            batch["has_mesh"],
         )
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -235,10 +258,15 @@ def train_stage1(config: Stage1Config) -> dict:
                 strip = comparison_strip(batch["image"][0], render[0].detach(), batch["mask"][0])
                 writer.add_image("train/truth|render|error", to_display(strip), done, dataformats="HWC")
         if group.is_main and (done % preset.checkpoint_every == 0 or done == preset.iterations):
-            save_checkpoint(checkpoint_path, _checkpoint_payload(model, optimizer, done, preset, data, config))
+            save_checkpoint(
+                checkpoint_path, _checkpoint_payload(model, optimizer, done, preset, data, config)
+            )
     progress.close()
 
-    metrics = {"iterations": preset.iterations, "seconds_per_iteration": step_seconds / steps if steps else None}
+    metrics = {
+        "iterations": preset.iterations,
+        "seconds_per_iteration": step_seconds / steps if steps else None,
+    }
     if group.world_size > 1:
         checksums = [None] * group.world_size
         dist.all_gather_object(checksums, weights_checksum(model))
@@ -246,15 +274,22 @@ def train_stage1(config: Stage1Config) -> dict:
         metrics["processes_in_sync"] = len(set(checksums)) == 1
     if group.is_main:
         if config.evaluate:
-            metrics["held_out"] = evaluate_held_out(model, data, use_lighting, max_views_per_dataset=config.eval_views_per_dataset)
+            metrics["held_out"] = evaluate_held_out(
+                model, data, use_lighting, max_views_per_dataset=config.eval_views_per_dataset
+            )
             if config.warmup and config.uncalibrated:
                 metrics["held_out_with_colour_matrix"] = evaluate_held_out(
-                    model, data, use_lighting, dataset_colour=True, max_views_per_dataset=config.eval_views_per_dataset
+                    model,
+                    data,
+                    use_lighting,
+                    dataset_colour=True,
+                    max_views_per_dataset=config.eval_views_per_dataset,
                 )
         if config.warmup:
             metrics["colour_matrices"] = {
                 name: model.colour_matrices[i].detach().cpu().tolist()
-                for i, name in enumerate(data.names) if name in config.uncalibrated
+                for i, name in enumerate(data.names)
+                if name in config.uncalibrated
             }
         _write_json(out / METRICS_NAME, metrics)
         writer.close()
@@ -263,7 +298,9 @@ def train_stage1(config: Stage1Config) -> dict:
     return metrics
 
 
-def _checkpoint_payload(model, optimizer, iteration: int, preset: Stage1Preset, data: Stage1Data, config: Stage1Config) -> dict:
+def _checkpoint_payload(
+    model, optimizer, iteration: int, preset: Stage1Preset, data: Stage1Data, config: Stage1Config
+) -> dict:
     return {
         "iteration": iteration,
         "model": model.state_dict(),
@@ -282,7 +319,9 @@ def _run_info(config: Stage1Config, data: Stage1Data, group: ProcessGroup) -> di
     return {
         "stage": "stage1-warmup" if config.warmup else "stage1",
         "preset": config.preset.to_json(),
-        "datasets": [{"name": n, "path": str(d.resolve())} for n, d in zip(data.names, data.dirs, strict=True)],
+        "datasets": [
+            {"name": n, "path": str(d.resolve())} for n, d in zip(data.names, data.dirs, strict=True)
+        ],
         "subjects": data.subjects,
         "uncalibrated": list(config.uncalibrated),
         "seed": config.seed,

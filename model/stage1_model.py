@@ -55,7 +55,9 @@ class Stage1Model(nn.Module):
     ) -> None:
         super().__init__()
         if binding.uv_size != preset.uv_size:
-            raise ValueError(f"UV binding is {binding.uv_size}² but preset {preset.name!r} needs {preset.uv_size}²")
+            raise ValueError(
+                f"UV binding is {binding.uv_size}² but preset {preset.name!r} needs {preset.uv_size}²"
+            )
         template_vertices = torch.as_tensor(template_vertices, dtype=torch.float32)
         self.preset = preset
         self.binding = binding

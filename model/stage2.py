@@ -58,7 +58,11 @@ class UNetEncoder(nn.Module):
         super().__init__()
         self.stem = _conv_block(in_channels, channels[0])
         self.down = nn.ModuleList(
-            nn.Sequential(nn.Conv2d(c_in, c_out, 4, stride=2, padding=1), nn.LeakyReLU(LEAKY_SLOPE), _conv_block(c_out, c_out))
+            nn.Sequential(
+                nn.Conv2d(c_in, c_out, 4, stride=2, padding=1),
+                nn.LeakyReLU(LEAKY_SLOPE),
+                _conv_block(c_out, c_out),
+            )
             for c_in, c_out in zip(channels[:-1], channels[1:], strict=True)
         )
 
@@ -77,13 +81,19 @@ class UNetDecoder(nn.Module):
     that bias everywhere.
     """
 
-    def __init__(self, channels: list[int], out_channels: int, output_bias: torch.Tensor, extra_channels: int = 0) -> None:
+    def __init__(
+        self, channels: list[int], out_channels: int, output_bias: torch.Tensor, extra_channels: int = 0
+    ) -> None:
         super().__init__()
         self.bottleneck = _conv_block(channels[-1] + extra_channels, channels[-1])
         self.up = nn.ModuleList()
         self.fuse = nn.ModuleList()
         for c_in, c_skip in zip(reversed(channels[1:]), reversed(channels[:-1]), strict=True):
-            self.up.append(nn.Sequential(nn.ConvTranspose2d(c_in, c_skip, 4, stride=2, padding=1), nn.LeakyReLU(LEAKY_SLOPE)))
+            self.up.append(
+                nn.Sequential(
+                    nn.ConvTranspose2d(c_in, c_skip, 4, stride=2, padding=1), nn.LeakyReLU(LEAKY_SLOPE)
+                )
+            )
             self.fuse.append(_conv_block(2 * c_skip, c_skip))
         self.output = nn.Conv2d(channels[0], out_channels, 1)
         nn.init.normal_(self.output.weight, std=1e-3)
@@ -108,7 +118,9 @@ class RelightingUNet(nn.Module):
         self.uv_size = uv_size
         self.sh_order = sh_order
         self.encoder = UNetEncoder(INPUT_CHANNELS, channels)
-        self.view_independent = UNetDecoder(channels, view_independent_channels(sh_order), view_independent_output_bias(sh_order))
+        self.view_independent = UNetDecoder(
+            channels, view_independent_channels(sh_order), view_independent_output_bias(sh_order)
+        )
         self.view_dependent = UNetDecoder(
             channels, VIEW_DEPENDENT_CHANNELS, view_dependent_output_bias(), extra_channels=VIEW_CHANNELS
         )
@@ -193,7 +205,11 @@ class Stage2Model(nn.Module):
         return scatter_texels(torch.cat([colours, normalized], dim=-1), self.binding)
 
     def forward(
-        self, colours: torch.Tensor, positions: torch.Tensor, mesh_normals: torch.Tensor, camera_positions: torch.Tensor
+        self,
+        colours: torch.Tensor,
+        positions: torch.Tensor,
+        mesh_normals: torch.Tensor,
+        camera_positions: torch.Tensor,
     ) -> RelightParams:
         """Reflectance of every Gaussian.
 

@@ -129,7 +129,9 @@ class OlatFrames:
         self.name = self.dataset.name
         rows = self.dataset.lights()
         if not rows:
-            raise ValueError(f"{self.path}: no lights.arrow; stage 2 needs an OLAT dataset (kind 'olat') with its rig")
+            raise ValueError(
+                f"{self.path}: no lights.arrow; stage 2 needs an OLAT dataset (kind 'olat') with its rig"
+            )
         columns = {name: [row[name] for row in rows] for name in rows[0]}
         self.rig = olat_rig_from_table(columns, source=str(self.path / "lights.arrow"))
         index = columns.get("index", list(range(len(rows))))
@@ -144,8 +146,10 @@ class OlatFrames:
             subject_names = [f"{self.name}/{s}" for s in subjects]
         missing = [s for s in subjects if f"{self.name}/{s}" not in subject_names]
         if missing:
-            raise ValueError(f"{self.path}: training subjects {missing} have no identity code in the stage-1 run; "
-                             "train stage 1 with this dataset first")
+            raise ValueError(
+                f"{self.path}: training subjects {missing} have no identity code in the stage-1 run; "
+                "train stage 1 with this dataset first"
+            )
         self.subjects = list(subject_names)
         self.full_on: list[OlatView] = []
         self.olat: list[OlatView] = []
@@ -154,8 +158,13 @@ class OlatFrames:
             if pattern != FULL_ON_PATTERN and not pattern.startswith(OLAT_PREFIX):
                 continue
             lights = pattern_light_indices(pattern, light_patterns, len(self.rig), str(self.path))
-            view = OlatView(cols["key"][i], self.subjects.index(f"{self.name}/{cols['subject'][i]}"),
-                            cols["subject"][i], int(cols["frame"][i]), tuple(lights))
+            view = OlatView(
+                cols["key"][i],
+                self.subjects.index(f"{self.name}/{cols['subject'][i]}"),
+                cols["subject"][i],
+                int(cols["frame"][i]),
+                tuple(lights),
+            )
             (self.full_on if pattern == FULL_ON_PATTERN else self.olat).append(view)
         if not self.full_on and not self.olat:
             raise ValueError(f"{self.path}: no 'full' or 'olat-KKK' training rows")
@@ -180,7 +189,9 @@ class OlatFrames:
         keys = sorted(k for k in self.meshes if k.startswith(f"{view.subject}/"))
         return self.meshes[keys[0]] if keys else None
 
-    def load_batch(self, views: list[OlatView], crop_size: int, seed: int, iteration: int) -> dict[str, torch.Tensor]:
+    def load_batch(
+        self, views: list[OlatView], crop_size: int, seed: int, iteration: int
+    ) -> dict[str, torch.Tensor]:
         """image (B, 3, c, c), mask (B, 1, c, c), K (B, 3, 3), w2c (B, 4, 4), light_positions and
         light_intensities (B, Lmax, 3), tracked (B, V, 3), has_mesh (B,), subject_index (B,)."""
         images, masks, Ks, w2cs = [], [], [], []
@@ -189,7 +200,9 @@ class OlatFrames:
             if self.colour_matrix is not None:
                 image = image @ self.colour_matrix.T.astype(np.float32)
             image = np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32)
-            box = choose_crop(mask.astype(np.float32), crop_size, iteration_generator(seed, iteration, CROP_STREAM, sample))
+            box = choose_crop(
+                mask.astype(np.float32), crop_size, iteration_generator(seed, iteration, CROP_STREAM, sample)
+            )
             images.append(crop_array(image, box))
             masks.append(crop_array(mask[None].astype(np.float32), box))
             Ks.append(crop_intrinsics(row.K, box))
@@ -204,7 +217,9 @@ class OlatFrames:
             "w2c": torch.tensor(np.stack(w2cs), dtype=torch.float32),
             "light_positions": light_positions,
             "light_intensities": light_intensities,
-            "tracked": torch.from_numpy(np.stack([t if t is not None else np.zeros((vertex_count, 3), np.float32) for t in tracked])),
+            "tracked": torch.from_numpy(
+                np.stack([t if t is not None else np.zeros((vertex_count, 3), np.float32) for t in tracked])
+            ),
             "has_mesh": torch.tensor([float(t is not None) for t in tracked]),
             "subject_index": torch.tensor([v.subject_index for v in views], dtype=torch.long),
         }
@@ -231,20 +246,30 @@ class Stage2Trainer:
         from relightanyone.format.reader import load_manifest
 
         if self.config.stage1_run is None:
-            raise ValueError("stage 2 needs the frozen stage-1 run (--stage1 RUN); use --single-stage for the baseline")
+            raise ValueError(
+                "stage 2 needs the frozen stage-1 run (--stage1 RUN); use --single-stage for the baseline"
+            )
         run = load_run(self.config.stage1_run)
         name = load_manifest(self.config.data).info.name
         if name not in run.datasets:
-            raise ValueError(f"{self.config.stage1_run}: stage 1 was not trained on dataset {name!r} "
-                             f"(it knows {run.datasets}); its lighting code z_l is needed, so train stage 1 with it")
+            raise ValueError(
+                f"{self.config.stage1_run}: stage 1 was not trained on dataset {name!r} "
+                f"(it knows {run.datasets}); its lighting code z_l is needed, so train stage 1 with it"
+            )
         self.frames = OlatFrames(self.config.data, run.subjects)
         self.stage1 = run.model.to(self.device).eval().requires_grad_(False)
         self.lighting_index = run.datasets.index(self.frames.name)
         self.stage1_preset = run.model.preset
         self.template_path = Path(self.config.stage1_run) / TEMPLATE_NAME
         centre, radius = head_frame(run.model.mesh_decoder.template_vertices)
-        self.trainable = Stage2Model(run.model.binding, centre, radius, self.preset.sh_order,
-                                     self.preset.base_channels, self.preset.max_channels).to(self.device)
+        self.trainable = Stage2Model(
+            run.model.binding,
+            centre,
+            radius,
+            self.preset.sh_order,
+            self.preset.base_channels,
+            self.preset.max_channels,
+        ).to(self.device)
         self.albedo_prior = self._albedo_prior()
 
     def _build_single_stage(self) -> None:
@@ -257,12 +282,21 @@ class Stage2Trainer:
         self.frames = OlatFrames(self.config.data)
         self.template_path = Path(self.config.data) / TEMPLATE_NAME
         if not self.template_path.is_file():
-            raise FileNotFoundError(f"{self.template_path}: template mesh missing; ingest writes it beside manifest.json")
+            raise FileNotFoundError(
+                f"{self.template_path}: template mesh missing; ingest writes it beside manifest.json"
+            )
         mesh = load_obj(self.template_path)
-        uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, self.stage1_preset.uv_size)
+        uv = UVBinding.from_mesh(
+            mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, self.stage1_preset.uv_size
+        )
         binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
-        self.trainable = SingleStageModel(self.stage1_preset, self.preset.sh_order, torch.from_numpy(mesh.vertices).float(),
-                                          binding, len(self.frames.subjects)).to(self.device)
+        self.trainable = SingleStageModel(
+            self.stage1_preset,
+            self.preset.sh_order,
+            torch.from_numpy(mesh.vertices).float(),
+            binding,
+            len(self.frames.subjects),
+        ).to(self.device)
         self.albedo_prior = None
 
     @torch.no_grad()
@@ -274,15 +308,24 @@ class Stage2Trainer:
         subjects = sorted({v.subject_index for v in self.frames.full_on + self.frames.olat})
         index = torch.tensor(subjects, device=self.device)
         vertices, gaussians = self.stage1(index, torch.full_like(index, self.lighting_index))
-        transfer = lambertian_transfer(texel_mesh_normals(vertices, self.stage1.binding), self.preset.sh_order)
+        transfer = lambertian_transfer(
+            texel_mesh_normals(vertices, self.stage1.binding), self.preset.sh_order
+        )
         rig = self.frames.rig.to(self.device)
-        light_sh = point_light_sh(rig.positions[None], rig.intensities[None], self.preset.sh_order,
-                                  self.trainable.head_centre[None], self.preset.inverse_square)
+        light_sh = point_light_sh(
+            rig.positions[None],
+            rig.intensities[None],
+            self.preset.sh_order,
+            self.trainable.head_centre[None],
+            self.preset.inverse_square,
+        )
         factor = torch.einsum("bnk,ck->bnc", transfer, light_sh[0]).clamp(min=0.0).mean(dim=(0, 1))
         return gaussians.colours.mean(dim=0) / factor.clamp(min=1e-8)
 
     def batch(self, iteration: int) -> dict[str, torch.Tensor]:
-        views = self.frames.draw(self.preset.batch_size, self.preset.full_on_fraction, self.config.seed, iteration)
+        views = self.frames.draw(
+            self.preset.batch_size, self.preset.full_on_fraction, self.config.seed, iteration
+        )
         loaded = self.frames.load_batch(views, self.preset.crop_size, self.config.seed, iteration)
         return {k: v.to(self.device) for k, v in loaded.items()}
 
@@ -297,18 +340,37 @@ class Stage2Trainer:
             subjects = batch["subject_index"]
             vertices, gaussians = self.stage1(subjects, torch.full_like(subjects, self.lighting_index))
             normals = texel_mesh_normals(vertices, self.stage1.binding)
-        return vertices, gaussians, self.trainable(gaussians.colours, gaussians.means, normals, cameras), cameras
+        return (
+            vertices,
+            gaussians,
+            self.trainable(gaussians.colours, gaussians.means, normals, cameras),
+            cameras,
+        )
 
-    def loss(self, batch: dict[str, torch.Tensor], iteration: int) -> tuple[torch.Tensor, dict[str, float], torch.Tensor]:
+    def loss(
+        self, batch: dict[str, torch.Tensor], iteration: int
+    ) -> tuple[torch.Tensor, dict[str, float], torch.Tensor]:
         """Total loss (mean over samples), its unweighted terms (batch means, plus weights and ``total``), the render."""
 
         weights = self.preset.loss
         vertices, gaussians, params, cameras = self.decode(batch)
-        relit = relight(params, gaussians.means, cameras, batch["light_positions"], batch["light_intensities"],
-                        self.trainable.head_centre, self.preset.lobe_normalization, self.preset.inverse_square)
+        relit = relight(
+            params,
+            gaussians.means,
+            cameras,
+            batch["light_positions"],
+            batch["light_intensities"],
+            self.trainable.head_centre,
+            self.preset.lobe_normalization,
+            self.preset.inverse_square,
+        )
         crop = batch["image"].shape[-1]
-        render, _ = render_gaussians(dataclasses.replace(gaussians, colours=relit.colour), batch["K"], batch["w2c"], crop, crop)
-        normal_lambda = annealed_weight(iteration, weights.normal_start, weights.normal_end, self.preset.normal_anneal_iterations)
+        render, _ = render_gaussians(
+            dataclasses.replace(gaussians, colours=relit.colour), batch["K"], batch["w2c"], crop, crop
+        )
+        normal_lambda = annealed_weight(
+            iteration, weights.normal_start, weights.normal_end, self.preset.normal_anneal_iterations
+        )
         terms = {
             "l1": masked_l1(render, batch["image"], batch["mask"]),
             "ssim": 1.0 - masked_ssim(render, batch["image"], batch["mask"]),
@@ -316,12 +378,18 @@ class Stage2Trainer:
             "monochrome": monochrome_transfer_loss(params.transfer),
             "normal": normal_residual_loss(params.normal_residual),
         }
-        per_sample = (weights.l1 * terms["l1"] + weights.ssim * terms["ssim"]
-                      + weights.negative_diffuse * terms["negative_diffuse"]
-                      + weights.monochrome * terms["monochrome"] + normal_lambda * terms["normal"])
+        per_sample = (
+            weights.l1 * terms["l1"]
+            + weights.ssim * terms["ssim"]
+            + weights.negative_diffuse * terms["negative_diffuse"]
+            + weights.monochrome * terms["monochrome"]
+            + normal_lambda * terms["normal"]
+        )
         logged = {"normal_lambda": normal_lambda}
         if self.albedo_prior is not None:
-            albedo_lambda = annealed_weight(iteration, weights.albedo_start, weights.albedo_end, self.preset.albedo_anneal_iterations)
+            albedo_lambda = annealed_weight(
+                iteration, weights.albedo_start, weights.albedo_end, self.preset.albedo_anneal_iterations
+            )
             terms["albedo"] = albedo_prior_loss(params.albedo, self.albedo_prior)
             per_sample = per_sample + albedo_lambda * terms["albedo"]
             logged["albedo_lambda"] = albedo_lambda
@@ -331,8 +399,12 @@ class Stage2Trainer:
             terms["scale"] = scale_bound_loss(gaussians.scales_preclip)
             terms["offset"] = offset_l2(gaussians.offsets)
             offset_lambda = offset_weight(iteration, geometry, self.stage1_preset.offset_anneal_iterations)
-            per_sample = (per_sample + geometry.geometry * terms["geometry"] + geometry.scale * terms["scale"]
-                          + offset_lambda * terms["offset"])
+            per_sample = (
+                per_sample
+                + geometry.geometry * terms["geometry"]
+                + geometry.scale * terms["scale"]
+                + offset_lambda * terms["offset"]
+            )
         total = per_sample.mean()
         logged.update({name: float(value.detach().mean()) for name, value in terms.items()})
         logged["total"] = float(total.detach())
@@ -345,9 +417,15 @@ class Stage2Trainer:
         checkpoint = load_checkpoint(path)
         saved = checkpoint["preset"]
         differing = [name for name in ARCHITECTURE_FIELDS if saved[name] != getattr(self.preset, name)]
-        if differing or checkpoint["single_stage"] != self.config.single_stage or checkpoint["subjects"] != self.frames.subjects:
-            raise ValueError(f"{path}: the checkpoint is from another mode, architecture ({', '.join(differing) or 'same'}) "
-                             "or subject list; use another --out folder or --no-resume")
+        if (
+            differing
+            or checkpoint["single_stage"] != self.config.single_stage
+            or checkpoint["subjects"] != self.frames.subjects
+        ):
+            raise ValueError(
+                f"{path}: the checkpoint is from another mode, architecture ({', '.join(differing) or 'same'}) "
+                "or subject list; use another --out folder or --no-resume"
+            )
         self.trainable.load_state_dict(checkpoint["model"])
         self.optimizer.load_state_dict(checkpoint["optimizer"])
         restore_rng_state(checkpoint["rng"])
@@ -366,8 +444,14 @@ class Stage2Trainer:
         writer = SummaryWriter(str(out / "tensorboard"), purge_step=self.start)
         self.trainable.train()
         mode = "single-stage" if self.config.single_stage else "stage2"
-        progress = tqdm(total=self.preset.iterations, initial=self.start, disable=not self.config.progress,
-                        desc=mode, unit="it", dynamic_ncols=True)
+        progress = tqdm(
+            total=self.preset.iterations,
+            initial=self.start,
+            disable=not self.config.progress,
+            desc=mode,
+            unit="it",
+            dynamic_ncols=True,
+        )
         history: list[dict[str, float]] = []
         seconds = 0.0
         for iteration in range(self.start, self.preset.iterations):

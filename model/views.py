@@ -88,7 +88,11 @@ def orbit_cameras(
     for index in range(count):
         azimuth = 2 * math.pi * index / count
         offset = radius * np.array(
-            [math.sin(azimuth) * math.cos(elevation), math.sin(elevation), math.cos(azimuth) * math.cos(elevation)]
+            [
+                math.sin(azimuth) * math.cos(elevation),
+                math.sin(elevation),
+                math.cos(azimuth) * math.cos(elevation),
+            ]
         )
         poses.append(look_at_w2c(centre + offset, centre, np.array([0.0, 1.0, 0.0])))
     return np.repeat(np.asarray(K, dtype=np.float64)[None], count, axis=0), np.stack(poses)
@@ -125,5 +129,8 @@ def grid(images: list[list[np.ndarray]], gap: int = 2) -> np.ndarray:
     canvas = np.full((rows * (height + gap) - gap, columns * (width + gap) - gap, 3), 255, np.uint8)
     for r, row in enumerate(images):
         for c, image in enumerate(row):
-            canvas[r * (height + gap) : r * (height + gap) + height, c * (width + gap) : c * (width + gap) + width] = image
+            canvas[
+                r * (height + gap) : r * (height + gap) + height,
+                c * (width + gap) : c * (width + gap) + width,
+            ] = image
     return canvas

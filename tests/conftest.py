@@ -19,5 +19,7 @@ SHARED_REAL_FIXTURES = REPO_ROOT.parent / "shared" / "fixtures" / "real"
 def real_fixtures() -> Path:
     """Folder of real dataset files (Ava-256, FaceOLAT); skips the test when it is not present."""
     if not SHARED_REAL_FIXTURES.is_dir():
-        pytest.skip(f"real fixtures not found at {SHARED_REAL_FIXTURES} (the ../shared folder beside the checkout)")
+        pytest.skip(
+            f"real fixtures not found at {SHARED_REAL_FIXTURES} (the ../shared folder beside the checkout)"
+        )
     return SHARED_REAL_FIXTURES

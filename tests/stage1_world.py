@@ -27,7 +27,13 @@ def sphere_obj(rings: int = 8, segments: int = 12) -> tuple[np.ndarray, str]:
         theta = np.pi * ring / rings
         for segment in range(segments):
             phi = 2 * np.pi * segment / segments
-            vertices.append((RADIUS * np.sin(theta) * np.sin(phi), RADIUS * np.cos(theta), RADIUS * np.sin(theta) * np.cos(phi)))
+            vertices.append(
+                (
+                    RADIUS * np.sin(theta) * np.sin(phi),
+                    RADIUS * np.cos(theta),
+                    RADIUS * np.sin(theta) * np.cos(phi),
+                )
+            )
     vertices.append((0.0, -RADIUS, 0.0))
     bottom = len(vertices) - 1
 
@@ -45,9 +51,21 @@ def sphere_obj(rings: int = 8, segments: int = 12) -> tuple[np.ndarray, str]:
         for ring in range(rings):
             v0, v1 = 1 - ring / rings, 1 - (ring + 1) / rings
             if ring == 0:
-                faces.append(((0, uv((u0 + u1) / 2, v0)), (vid(1, segment), uv(u0, v1)), (vid(1, segment + 1), uv(u1, v1))))
+                faces.append(
+                    (
+                        (0, uv((u0 + u1) / 2, v0)),
+                        (vid(1, segment), uv(u0, v1)),
+                        (vid(1, segment + 1), uv(u1, v1)),
+                    )
+                )
             elif ring == rings - 1:
-                faces.append(((vid(ring, segment), uv(u0, v0)), (bottom, uv((u0 + u1) / 2, v1)), (vid(ring, segment + 1), uv(u1, v0))))
+                faces.append(
+                    (
+                        (vid(ring, segment), uv(u0, v0)),
+                        (bottom, uv((u0 + u1) / 2, v1)),
+                        (vid(ring, segment + 1), uv(u1, v0)),
+                    )
+                )
             else:
                 a, b = (vid(ring, segment), uv(u0, v0)), (vid(ring, segment + 1), uv(u1, v0))
                 c, d = (vid(ring + 1, segment), uv(u0, v1)), (vid(ring + 1, segment + 1), uv(u1, v1))
@@ -63,7 +81,9 @@ def render_sphere(scale: float, albedo: np.ndarray, K: np.ndarray, w2c: np.ndarr
     """Ray-cast the sphere of radius RADIUS·scale at the origin: (image (H, W, 3), mask (H, W))."""
     c2w = np.linalg.inv(w2c)
     y, x = np.mgrid[0:size, 0:size].astype(np.float64)
-    directions = np.stack([(x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1], np.ones_like(x)], -1) @ c2w[:3, :3].T
+    directions = (
+        np.stack([(x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1], np.ones_like(x)], -1) @ c2w[:3, :3].T
+    )
     directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
     origin = c2w[:3, 3]
     b = directions @ origin
@@ -91,7 +111,10 @@ def write_dataset(
     template_vertices, obj_text = sphere_obj()
     dataset_dir = root / name
     info = DatasetInfo(
-        name=name, kind="flat", template_mesh_id="sphere", lighting="full-on",
+        name=name,
+        kind="flat",
+        template_mesh_id="sphere",
+        lighting="full-on",
         provenance=Provenance(source_dataset="stage1 test sphere world", licence="CC0"),
         config_fingerprint=fingerprint_config({"name": name, "seed": seed}),
     )
@@ -104,17 +127,33 @@ def write_dataset(
         scale = 1.0 + 0.1 * s
         albedo = cast @ rng.uniform(0.3, 0.8, 3)
         with writer.part(subject) as part:
-            part.add_mesh(MeshRow(subject=subject, frame=0, vertices=(template_vertices * scale).astype(np.float32)))
+            part.add_mesh(
+                MeshRow(subject=subject, frame=0, vertices=(template_vertices * scale).astype(np.float32))
+            )
             for c in range(cameras):
                 angle = 2 * np.pi * c / cameras
                 w2c = look_at_w2c(0.5 * np.array([np.sin(angle), 0.2, np.cos(angle)]))
                 image, mask = render_sphere(scale, albedo, K, w2c, size)
                 source = f"{subject}/cam{c:02d}.exr"
-                part.add(build_image_row(
-                    dataset=name, subject=subject, frame=0, camera=f"cam{c:02d}", pattern="full", split="train",
-                    K=K, w2c=w2c, image=encode_image(image), image_encoding="raw-f16", mask=encode_mask(mask),
-                    width=size, height=size, source=source, source_sha256=hashlib.sha256(source.encode()).hexdigest(),
-                ))
+                part.add(
+                    build_image_row(
+                        dataset=name,
+                        subject=subject,
+                        frame=0,
+                        camera=f"cam{c:02d}",
+                        pattern="full",
+                        split="train",
+                        K=K,
+                        w2c=w2c,
+                        image=encode_image(image),
+                        image_encoding="raw-f16",
+                        mask=encode_mask(mask),
+                        width=size,
+                        height=size,
+                        source=source,
+                        source_sha256=hashlib.sha256(source.encode()).hexdigest(),
+                    )
+                )
     writer.commit()
     (dataset_dir / "template.obj").write_text(obj_text)
     return dataset_dir
@@ -126,9 +165,22 @@ def tiny_stage1_preset(**changes):
     from relightanyone.model.presets import get_preset
 
     settings = dict(
-        uv_size=16, z_id_dim=8, z_l_dim=4, start_channels=16, min_channels=8, mesh_hidden=16, crop_size=32,
-        batch_size=2, iterations=8, offset_anneal_iterations=4, warmup_iterations=6, checkpoint_every=4,
-        log_every=2, image_every=4, held_out_cameras=1, learning_rate=1e-2,
+        uv_size=16,
+        z_id_dim=8,
+        z_l_dim=4,
+        start_channels=16,
+        min_channels=8,
+        mesh_hidden=16,
+        crop_size=32,
+        batch_size=2,
+        iterations=8,
+        offset_anneal_iterations=4,
+        warmup_iterations=6,
+        checkpoint_every=4,
+        log_every=2,
+        image_every=4,
+        held_out_cameras=1,
+        learning_rate=1e-2,
     )
     settings.update(changes)
     return get_preset("tiny").replace(**settings)

@@ -50,8 +50,11 @@ LIGHTS = np.array([[0.8, 0.4, 0.6], [-0.8, 0.3, 0.6], [0.0, 0.9, 0.5], [0.0, -0.
 RIG_INTENSITY = 2.5
 # The unseen subject's lighting: the rig's lights with other RGB intensities (light 1 nearly off).
 SCENE_INTENSITIES = np.array([[4.0, 3.0, 2.0], [0.2, 0.2, 0.3], [2.0, 2.5, 3.0], [1.0, 1.0, 1.0]])
-SUBJECTS = {"s00": (1.0, (0.7, 0.5, 0.4), "train"), "s01": (1.0, (0.4, 0.6, 0.8), "train"),
-            "s02": (1.15, (0.8, 0.45, 0.3), "test")}
+SUBJECTS = {
+    "s00": (1.0, (0.7, 0.5, 0.4), "train"),
+    "s01": (1.0, (0.4, 0.6, 0.8), "train"),
+    "s02": (1.15, (0.8, 0.45, 0.3), "test"),
+}
 
 
 def _lambert_sphere(scale, albedo, K, w2c, positions, intensities):
@@ -78,13 +81,28 @@ def _lambert_sphere(scale, albedo, K, w2c, positions, intensities):
 def _write_world(root: Path) -> Path:
     vertices, obj_text = sphere_obj()
     folder = root / "olat"
-    info = DatasetInfo(name="olat", kind="olat", template_mesh_id="sphere", lighting="4-light OLAT rig + full-on",
-                       provenance=Provenance(source_dataset="fit test sphere world", licence="CC0"),
-                       config_fingerprint=fingerprint_config({"name": "fit-world"}))
+    info = DatasetInfo(
+        name="olat",
+        kind="olat",
+        template_mesh_id="sphere",
+        lighting="4-light OLAT rig + full-on",
+        provenance=Provenance(source_dataset="fit test sphere world", licence="CC0"),
+        config_fingerprint=fingerprint_config({"name": "fit-world"}),
+    )
     writer = ShardWriter(folder, info)
     writer.begin()
-    writer.write_lights([LightRow(index=k, name=f"L{k}", position_m=tuple(p), intensity_rgb=(RIG_INTENSITY,) * 3,
-                                  pattern=f"olat-{k:03d}") for k, p in enumerate(LIGHTS)])
+    writer.write_lights(
+        [
+            LightRow(
+                index=k,
+                name=f"L{k}",
+                position_m=tuple(p),
+                intensity_rgb=(RIG_INTENSITY,) * 3,
+                pattern=f"olat-{k:03d}",
+            )
+            for k, p in enumerate(LIGHTS)
+        ]
+    )
     K = np.array([[2.2 * SIZE, 0, (SIZE - 1) / 2], [0, 2.2 * SIZE, (SIZE - 1) / 2], [0, 0, 1.0]])
     rig = np.full((4, 3), RIG_INTENSITY)
     for subject, (scale, albedo, split) in SUBJECTS.items():
@@ -94,17 +112,33 @@ def _write_world(root: Path) -> Path:
                 angle = 0.5 * (c - 1.5)
                 w2c = look_at_w2c(0.5 * np.array([np.sin(angle), 0.1, np.cos(angle)]))
                 if split == "train":
-                    patterns = {"full": (LIGHTS, rig)} | {f"olat-{k:03d}": (LIGHTS[k : k + 1], rig[k : k + 1]) for k in range(4)}
+                    patterns = {"full": (LIGHTS, rig)} | {
+                        f"olat-{k:03d}": (LIGHTS[k : k + 1], rig[k : k + 1]) for k in range(4)
+                    }
                 else:
                     patterns = {"full": (LIGHTS, SCENE_INTENSITIES)}
                 for pattern, (positions, intensities) in patterns.items():
                     image, mask = _lambert_sphere(scale, albedo, K, w2c, positions, intensities)
                     source = f"{subject}/{pattern}/cam{c:02d}.exr"
-                    part.add(build_image_row(
-                        dataset="olat", subject=subject, frame=0, camera=f"cam{c:02d}", pattern=pattern, split=split,
-                        K=K, w2c=w2c, image=encode_image(image), image_encoding="raw-f16", mask=encode_mask(mask),
-                        width=SIZE, height=SIZE, source=source, source_sha256=hashlib.sha256(source.encode()).hexdigest(),
-                    ))
+                    part.add(
+                        build_image_row(
+                            dataset="olat",
+                            subject=subject,
+                            frame=0,
+                            camera=f"cam{c:02d}",
+                            pattern=pattern,
+                            split=split,
+                            K=K,
+                            w2c=w2c,
+                            image=encode_image(image),
+                            image_encoding="raw-f16",
+                            mask=encode_mask(mask),
+                            width=SIZE,
+                            height=SIZE,
+                            source=source,
+                            source_sha256=hashlib.sha256(source.encode()).hexdigest(),
+                        )
+                    )
     writer.commit()
     (folder / "template.obj").write_text(obj_text)
     return folder
@@ -125,11 +159,28 @@ def world(tmp_path_factory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("fit-world")
     data = _write_world(root)
     stage1 = root / "stage1"
-    train_stage1(Stage1Config([data], stage1, tiny_stage1_preset(iterations=6, crop_size=SIZE, held_out_cameras=0),
-                              progress=False, evaluate=False))
+    train_stage1(
+        Stage1Config(
+            [data],
+            stage1,
+            tiny_stage1_preset(iterations=6, crop_size=SIZE, held_out_cameras=0),
+            progress=False,
+            evaluate=False,
+        )
+    )
     stage2_preset = get_stage2_preset("tiny").replace(
-        sh_order=2, base_channels=8, max_channels=16, crop_size=SIZE, batch_size=2, iterations=4,
-        normal_anneal_iterations=2, albedo_anneal_iterations=2, checkpoint_every=4, log_every=2, learning_rate=5e-3)
+        sh_order=2,
+        base_channels=8,
+        max_channels=16,
+        crop_size=SIZE,
+        batch_size=2,
+        iterations=4,
+        normal_anneal_iterations=2,
+        albedo_anneal_iterations=2,
+        checkpoint_every=4,
+        log_every=2,
+        learning_rate=5e-3,
+    )
     stage2 = root / "stage2"
     train_stage2(Stage2Config(data, stage2, stage2_preset, stage1_run=stage1, progress=False))
     return {"data": data, "stage1": stage1, "stage2": stage2, "root": root}
@@ -138,22 +189,42 @@ def world(tmp_path_factory) -> dict[str, Path]:
 def _fitter(world, **settings) -> Fitter:
     model = load_relightable_model(world["stage1"], world["stage2"])
     views = load_fit_views(world["data"], "s02")
-    defaults = dict(inversion_iterations=0, finetune_iterations=0, inversion_lr=5e-2, finetune_lr=3e-3,
-                    views_per_step=2, progress=False)
+    defaults = dict(
+        inversion_iterations=0,
+        finetune_iterations=0,
+        inversion_lr=5e-2,
+        finetune_lr=3e-3,
+        views_per_step=2,
+        progress=False,
+    )
     return Fitter(model, views, FitSettings(**(defaults | settings)))
 
 
 @pytest.fixture(scope="module")
 def avatar(world) -> FittedAvatar:
     settings = FitSettings(inversion_iterations=4, finetune_iterations=2, views_per_step=2, progress=False)
-    return fit_subject(world["stage1"], world["stage2"], world["data"], "s02", settings=settings,
-                       out=world["root"] / "s02.avatar")
+    return fit_subject(
+        world["stage1"],
+        world["stage2"],
+        world["data"],
+        "s02",
+        settings=settings,
+        out=world["root"] / "s02.avatar",
+    )
 
 
 def test_views_of_an_unseen_subject_are_read_with_cameras_and_tracked_mesh(world):
     views = load_fit_views(world["data"], "s02", cameras=["cam02"])
-    assert len(views) == 1 and views.images.shape == (1, 3, SIZE, SIZE) and views.masks.shape == (1, 1, SIZE, SIZE)
-    assert views.tracked_vertices is not None and views.frame == 0 and views.keys == ["olat/s02/000000/cam02/full"]
+    assert (
+        len(views) == 1
+        and views.images.shape == (1, 3, SIZE, SIZE)
+        and views.masks.shape == (1, 1, SIZE, SIZE)
+    )
+    assert (
+        views.tracked_vertices is not None
+        and views.frame == 0
+        and views.keys == ["olat/s02/000000/cam02/full"]
+    )
     half = load_fit_views(world["data"], "s02", image_scale=0.5)
     assert half.images.shape == (4, 3, SIZE // 2, SIZE // 2)
     # Pixel centres stay put: c' = (c + 0.5) s - 0.5.
@@ -205,12 +276,24 @@ def _finetuned(world, locality_weight: float) -> tuple[Fitter, float, float]:
     fitter.invert(3)
     initial = [p.detach().clone() for p in fitter.decoder_parameters()]
     fitter.finetune(8, locality_weight=locality_weight)
-    weight_change = float(torch.sqrt(sum(((p.detach() - q) ** 2).sum() for p, q in zip(fitter.decoder_parameters(), initial, strict=True))))
+    weight_change = float(
+        torch.sqrt(
+            sum(
+                ((p.detach() - q) ** 2).sum()
+                for p, q in zip(fitter.decoder_parameters(), initial, strict=True)
+            )
+        )
+    )
     codes = fitter.model.training_codes
     z_l = fitter.z_l.expand(codes.shape[0], -1)
     with torch.no_grad():
-        change = float(locality_loss(decode_codes(fitter.stage1, codes, z_l), decode_codes(fitter.reference, codes, z_l),
-                                     fitter.spacing).mean())
+        change = float(
+            locality_loss(
+                decode_codes(fitter.stage1, codes, z_l),
+                decode_codes(fitter.reference, codes, z_l),
+                fitter.spacing,
+            ).mean()
+        )
     return fitter, weight_change, change
 
 
@@ -222,20 +305,27 @@ def test_locality_regulariser_keeps_finetuning_local(world):
     assert local_change < free_change, (local_change, free_change)
     # Finetuning froze the pivot and stage 2, and left the reference (the loaded model) untouched.
     assert not local.z_id.requires_grad and not local.log_intensities.requires_grad
-    assert local.reference is local.model.stage1 and all(not p.requires_grad for p in local.reference.parameters())
+    assert local.reference is local.model.stage1 and all(
+        not p.requires_grad for p in local.reference.parameters()
+    )
 
 
 def test_avatar_save_load_round_trip_renders_identical_images(world, avatar, tmp_path):
     path = world["root"] / "s02.avatar"
     assert path.is_file() and not list(path.parent.glob(".*.tmp"))
     loaded = FittedAvatar.load(path)
-    assert loaded.metadata["subject"] == "s02" and loaded.metadata["iterations"] == {"inversion": 4, "finetune": 2}
+    assert loaded.metadata["subject"] == "s02" and loaded.metadata["iterations"] == {
+        "inversion": 4,
+        "finetune": 2,
+    }
     assert loaded.metadata["mesh"] == "tracked" and loaded.tracked_vertices is not None
     cameras = _cameras(world)
     for lighting in (avatar.scene_lights(), avatar.olat(2)):
         assert torch.equal(avatar.relight(cameras, lighting), loaded.relight(cameras, lighting))
     assert torch.equal(loaded.scene_intensities, avatar.scene_intensities)
-    assert torch.equal(loaded.to("cpu").relight(cameras, avatar.olat(1)), avatar.relight(cameras, avatar.olat(1)))
+    assert torch.equal(
+        loaded.to("cpu").relight(cameras, avatar.olat(1)), avatar.relight(cameras, avatar.olat(1))
+    )
     (tmp_path / "bad.avatar").write_bytes(b"not a torch file")
     with pytest.raises(ValueError, match="bad.avatar"):
         FittedAvatar.load(tmp_path / "bad.avatar")
@@ -251,8 +341,9 @@ def _cameras(world) -> Cameras:
 def test_olat_light_and_point_light_at_the_same_position_give_the_same_image(world, avatar):
     cameras = _cameras(world)
     olat = avatar.relight(cameras, avatar.olat(0))
-    point = avatar.relight(cameras, PointLights(torch.tensor(LIGHTS[:1], dtype=torch.float32),
-                                                torch.full((1, 3), RIG_INTENSITY)))
+    point = avatar.relight(
+        cameras, PointLights(torch.tensor(LIGHTS[:1], dtype=torch.float32), torch.full((1, 3), RIG_INTENSITY))
+    )
     assert olat.shape == (4, 3, SIZE, SIZE) and float(olat.max()) > 0
     torch.testing.assert_close(olat, point, rtol=0, atol=1e-6)
     # Linearity through the whole path: twice the intensity, twice the image.
@@ -268,7 +359,10 @@ def test_envmap_relight_from_an_exr_file(world, avatar, tmp_path):
 
     directions = latlong_directions(16, 32)
     # A warm sky in front of the face over a dim ambient.
-    env = 0.05 + 2.0 * (directions[..., 2].clamp(min=0) ** 4)[None] * torch.tensor([1.0, 0.8, 0.6])[:, None, None]
+    env = (
+        0.05
+        + 2.0 * (directions[..., 2].clamp(min=0) ** 4)[None] * torch.tensor([1.0, 0.8, 0.6])[:, None, None]
+    )
     path = tmp_path / "studio.exr"
     save_envmap(path, env)
     cameras = _cameras(world)

@@ -86,7 +86,9 @@ def test_texel_positions_are_the_barycentric_points_on_the_mesh():
     positions = texel_positions(vertices[None], binding)[0]
     # Texel (row, column) of the left half maps to the point (u, v) of the unit square.
     rows, columns = torch.div(binding.valid_index, 8, rounding_mode="floor"), binding.valid_index % 8
-    expected = torch.stack([(columns + 0.5) / 4, (rows + 0.5) / 8, torch.zeros_like(rows, dtype=torch.float)], 1)
+    expected = torch.stack(
+        [(columns + 0.5) / 4, (rows + 0.5) / 8, torch.zeros_like(rows, dtype=torch.float)], 1
+    )
     assert torch.allclose(positions, expected, atol=1e-6)
     maps = torch.arange(2 * 64, dtype=torch.float).view(1, 2, 8, 8)
     gathered = gather_texels(maps, binding)

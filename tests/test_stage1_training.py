@@ -80,8 +80,15 @@ def test_resume_refuses_a_different_architecture(world, trained_run):
 def test_sigkill_then_resume_gives_the_uninterrupted_weights(world, tmp_path):
     settings = dict(iterations=10, checkpoint_every=2)
     reference, interrupted = tmp_path / "reference", tmp_path / "interrupted"
-    subprocess.run([sys.executable, "-c", train_script(world, reference, **settings)], check=True, env=_env(), timeout=240)
-    process = subprocess.Popen([sys.executable, "-c", train_script(world, interrupted, **settings)], env=_env())
+    subprocess.run(
+        [sys.executable, "-c", train_script(world, reference, **settings)],
+        check=True,
+        env=_env(),
+        timeout=240,
+    )
+    process = subprocess.Popen(
+        [sys.executable, "-c", train_script(world, interrupted, **settings)], env=_env()
+    )
     deadline = time.monotonic() + 180
     checkpoint = interrupted / "checkpoint.pt"
     while time.monotonic() < deadline and process.poll() is None:
@@ -92,7 +99,12 @@ def test_sigkill_then_resume_gives_the_uninterrupted_weights(world, tmp_path):
     process.wait()
     killed_at = load_checkpoint(checkpoint)["iteration"]
     assert killed_at < 10, "the run finished before it could be killed"
-    subprocess.run([sys.executable, "-c", train_script(world, interrupted, **settings)], check=True, env=_env(), timeout=240)
+    subprocess.run(
+        [sys.executable, "-c", train_script(world, interrupted, **settings)],
+        check=True,
+        env=_env(),
+        timeout=240,
+    )
     expected = load_checkpoint(reference / "checkpoint.pt")
     resumed = load_checkpoint(checkpoint)
     assert resumed["iteration"] == expected["iteration"] == 10
@@ -104,14 +116,31 @@ def test_torchrun_two_gloo_processes_average_gradients(world, tmp_path):
     ddp, single = tmp_path / "ddp", tmp_path / "single"
     script = tmp_path / "train.py"
     script.write_text(train_script(world, ddp, iterations=3, batch_size=1))
-    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", str(script)]
+    command = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node",
+        "2",
+        str(script),
+    ]
     subprocess.run(command, check=True, env=_env(), timeout=240)
     metrics = json.loads((ddp / "metrics.json").read_text())
     assert metrics["processes"] == 2 and metrics["processes_in_sync"]
     # Two processes with batch 1 see exactly the samples of one process with batch 2.
-    train_stage1(Stage1Config(world, single, tiny_stage1_preset(iterations=3, batch_size=2), progress=False, evaluate=False))
-    parallel, serial = load_checkpoint(ddp / "checkpoint.pt")["model"], load_checkpoint(single / "checkpoint.pt")["model"]
-    initial = build_model(tiny_stage1_preset(), Stage1Data(world, 1), (), world[0] / "template.obj").state_dict()
+    train_stage1(
+        Stage1Config(
+            world, single, tiny_stage1_preset(iterations=3, batch_size=2), progress=False, evaluate=False
+        )
+    )
+    parallel, serial = (
+        load_checkpoint(ddp / "checkpoint.pt")["model"],
+        load_checkpoint(single / "checkpoint.pt")["model"],
+    )
+    initial = build_model(
+        tiny_stage1_preset(), Stage1Data(world, 1), (), world[0] / "template.obj"
+    ).state_dict()
     assert not torch.equal(serial["identity_codes"], initial["identity_codes"])
     # Adam's first steps move each weight by about ±lr whatever the gradient's size, so the few weights
     # whose gradient is ~0 may take either sign from rounding; all others must agree.
@@ -124,7 +153,9 @@ def test_colour_warmup_stores_the_inverse_matrix_and_the_loader_applies_it(world
     from relightanyone.align.colour import read_learned_colour_matrix
     from relightanyone.model.colour_align import run_colour_warmup
 
-    metrics = run_colour_warmup(world, tmp_path / "run", tiny_stage1_preset(warmup_iterations=6), ("db",), progress=False)
+    metrics = run_colour_warmup(
+        world, tmp_path / "run", tiny_stage1_preset(warmup_iterations=6), ("db",), progress=False
+    )
     learned = np.asarray(metrics["colour_matrices"]["db"])
     assert not np.allclose(learned, np.eye(3)), "the warm-up did not update the colour matrix"
     stored = read_learned_colour_matrix(world[1])
@@ -144,19 +175,57 @@ def test_colour_warmup_stores_the_inverse_matrix_and_the_loader_applies_it(world
 def test_render_command_swaps_lighting_codes_without_moving_geometry(trained_run, tmp_path):
     out, _ = trained_run
     runner = CliRunner()
-    result = runner.invoke(COMMANDS["render"], ["stage1", str(out), "--subject", "da/s01", "--lighting-code", "db",
-                                                "--lighting-grid", "--out", str(tmp_path / "png")])
+    result = runner.invoke(
+        COMMANDS["render"],
+        [
+            "stage1",
+            str(out),
+            "--subject",
+            "da/s01",
+            "--lighting-code",
+            "db",
+            "--lighting-grid",
+            "--out",
+            str(tmp_path / "png"),
+        ],
+    )
     assert result.exit_code == 0, result.output
     report = json.loads((tmp_path / "png" / "render_report.json").read_text())["subject"]
     assert report["geometry_identical"] is True
     assert report["mean_colour_shift_norm"] > 0
     assert len(report["files"]) == 4 and all(Path(f).is_file() for f in report["files"])
     assert (tmp_path / "png" / "lighting_grid.png").is_file()
-    orbit = runner.invoke(COMMANDS["render"], ["stage1", str(out), "--subject", "s00", "--cameras", "orbit",
-                                               "--orbit-count", "3", "--out", str(tmp_path / "orbit")])
+    orbit = runner.invoke(
+        COMMANDS["render"],
+        [
+            "stage1",
+            str(out),
+            "--subject",
+            "s00",
+            "--cameras",
+            "orbit",
+            "--orbit-count",
+            "3",
+            "--out",
+            str(tmp_path / "orbit"),
+        ],
+    )
     assert orbit.exit_code != 0 and "several datasets" in orbit.output
-    orbit = runner.invoke(COMMANDS["render"], ["stage1", str(out), "--subject", "db/s00", "--cameras", "orbit",
-                                               "--orbit-count", "3", "--out", str(tmp_path / "orbit")])
+    orbit = runner.invoke(
+        COMMANDS["render"],
+        [
+            "stage1",
+            str(out),
+            "--subject",
+            "db/s00",
+            "--cameras",
+            "orbit",
+            "--orbit-count",
+            "3",
+            "--out",
+            str(tmp_path / "orbit"),
+        ],
+    )
     assert orbit.exit_code == 0, orbit.output
     assert len(list((tmp_path / "orbit").glob("*.png"))) == 3
 
@@ -164,5 +233,7 @@ def test_render_command_swaps_lighting_codes_without_moving_geometry(trained_run
 def test_train_command_reports_missing_template(tmp_path):
     dataset = write_dataset(tmp_path, "dc", subjects=1, cameras=2, size=16)
     (dataset / "template.obj").unlink()
-    result = CliRunner().invoke(COMMANDS["train"], ["stage1", "--data", str(dataset), "--out", str(tmp_path / "r")])
+    result = CliRunner().invoke(
+        COMMANDS["train"], ["stage1", "--data", str(dataset), "--out", str(tmp_path / "r")]
+    )
     assert result.exit_code != 0 and "template.obj" in result.output

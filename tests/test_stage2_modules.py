@@ -93,15 +93,27 @@ def test_stage2_model_gradients_reach_both_decoders_and_view_only_moves_view_dep
     assert params.albedo.shape == (2, count, 3) and params.transfer.shape == (2, count, 3, 9)
     assert params.roughness.shape == params.visibility.shape == (2, count)
     assert torch.allclose(params.normals.norm(dim=-1), torch.ones(2, count), atol=1e-5)
-    loss = params.albedo.sum() + params.transfer.sum() + params.roughness.sum() + params.visibility.sum() + params.normals.sum()
+    loss = (
+        params.albedo.sum()
+        + params.transfer.sum()
+        + params.roughness.sum()
+        + params.visibility.sum()
+        + params.normals.sum()
+    )
     loss.backward()
-    for name in ("unet.encoder.stem.0.weight", "unet.view_independent.output.weight", "unet.view_dependent.output.weight",
-                 "unet.view_dependent.bottleneck.0.weight"):
+    for name in (
+        "unet.encoder.stem.0.weight",
+        "unet.view_independent.output.weight",
+        "unet.view_dependent.output.weight",
+        "unet.view_dependent.bottleneck.0.weight",
+    ):
         gradient = dict(model.named_parameters())[name].grad
         assert gradient is not None and gradient.abs().sum() > 0, name
     with torch.no_grad():
         other_view = model(colours, positions, normals, cameras.flip(0))
-    assert torch.equal(other_view.albedo, params.albedo.detach()) and torch.equal(other_view.transfer, params.transfer.detach())
+    assert torch.equal(other_view.albedo, params.albedo.detach()) and torch.equal(
+        other_view.transfer, params.transfer.detach()
+    )
     assert not torch.allclose(other_view.visibility, params.visibility.detach())
 
 
@@ -110,12 +122,18 @@ def test_untrained_outputs_are_rgca_defaults_over_a_lambertian_transfer():
     normals = F.normalize(torch.randn(1, 50, 3), dim=-1)
     from relightanyone.model.relight import view_dependent_output_bias, view_independent_output_bias
 
-    params = activate_relight_params(view_independent_output_bias(order).expand(1, 50, -1),
-                                     view_dependent_output_bias().expand(1, 50, -1), normals, order)
+    params = activate_relight_params(
+        view_independent_output_bias(order).expand(1, 50, -1),
+        view_dependent_output_bias().expand(1, 50, -1),
+        normals,
+        order,
+    )
     assert torch.allclose(params.albedo, torch.full_like(params.albedo, INITIAL_ALBEDO))
     assert torch.allclose(params.visibility, torch.full_like(params.visibility, INITIAL_VISIBILITY))
     assert torch.allclose(params.roughness, torch.full_like(params.roughness, 0.1))
-    assert torch.allclose(params.transfer, lambertian_transfer(normals, order)[:, :, None].expand(-1, -1, 3, -1))
+    assert torch.allclose(
+        params.transfer, lambertian_transfer(normals, order)[:, :, None].expand(-1, -1, 3, -1)
+    )
     assert torch.allclose(params.normals, normals) and params.sh_order == order
 
 
@@ -138,8 +156,17 @@ def test_full_on_relit_colour_is_the_sum_of_the_olat_relit_colours():
     rig = PointLights(fibonacci_sphere_directions(light_count) * 1.2, torch.rand(light_count, 3) + 0.5)
     centre = torch.zeros(3)
     full = relight(params, positions, camera, rig.positions[None], rig.intensities[None], centre)
-    singles = [relight(params, positions, camera, rig.positions[k : k + 1][None], rig.intensities[k : k + 1][None], centre)
-               for k in range(light_count)]
+    singles = [
+        relight(
+            params,
+            positions,
+            camera,
+            rig.positions[k : k + 1][None],
+            rig.intensities[k : k + 1][None],
+            centre,
+        )
+        for k in range(light_count)
+    ]
     diffuse_sum = sum(s.diffuse for s in singles)
     specular_sum = sum(s.specular for s in singles)
     assert torch.allclose(full.diffuse, diffuse_sum, rtol=1e-4, atol=1e-6)
@@ -151,14 +178,29 @@ def test_full_on_relit_colour_is_the_sum_of_the_olat_relit_colours():
     transfer[..., 0] = params.transfer[..., 0].abs()
     positive = type(params)(**{**vars(params), "transfer": transfer})
     full = relight(positive, positions, camera, rig.positions[None], rig.intensities[None], centre)
-    colour_sum = sum(relight(positive, positions, camera, rig.positions[k : k + 1][None], rig.intensities[k : k + 1][None],
-                             centre).colour for k in range(light_count))
+    colour_sum = sum(
+        relight(
+            positive,
+            positions,
+            camera,
+            rig.positions[k : k + 1][None],
+            rig.intensities[k : k + 1][None],
+            centre,
+        ).colour
+        for k in range(light_count)
+    )
     assert torch.allclose(full.colour, colour_sum, rtol=1e-4, atol=1e-6)
     # The same sum through padded batching: one OLAT light per sample, padding lights contribute nothing.
-    positions_b, intensities_b = batch_lights(rig, [[k] for k in range(light_count)] + [list(range(light_count))])
+    positions_b, intensities_b = batch_lights(
+        rig, [[k] for k in range(light_count)] + [list(range(light_count))]
+    )
     batched = relight(
         type(params)(**{k: v.expand(light_count + 1, *v.shape[1:]) for k, v in vars(params).items()}),
-        positions.expand(light_count + 1, -1, -1), camera.expand(light_count + 1, -1), positions_b, intensities_b, centre,
+        positions.expand(light_count + 1, -1, -1),
+        camera.expand(light_count + 1, -1),
+        positions_b,
+        intensities_b,
+        centre,
     )
     assert torch.allclose(batched.diffuse[:-1].sum(0), batched.diffuse[-1], rtol=1e-4, atol=1e-6)
     assert torch.allclose(batched.specular[:-1].sum(0), batched.specular[-1], rtol=1e-4, atol=1e-6)
@@ -172,8 +214,14 @@ def test_lambertian_default_matches_a_point_light_and_albedo_only_scales_diffuse
     view_dependent = torch.tensor([[[-30.0, 0.0, 0.0, 0.0]]])  # visibility ~ 0: diffuse only
     params = activate_relight_params(view_independent, view_dependent, normals, order)
     light = torch.tensor([[[0.0, 0.0, 2.0]]])
-    relit = relight(params, torch.zeros(1, 1, 3), torch.tensor([[0.0, 0.0, 1.0]]), light, torch.full((1, 1, 3), 4.0),
-                    torch.zeros(3))
+    relit = relight(
+        params,
+        torch.zeros(1, 1, 3),
+        torch.tensor([[0.0, 0.0, 1.0]]),
+        light,
+        torch.full((1, 1, 3), 4.0),
+        torch.zeros(3),
+    )
     # Head-on light of intensity 4 at 2 m: irradiance 1, radiance albedo / π (truncated SH at order 8).
     assert torch.allclose(relit.diffuse, torch.full((1, 1, 3), 0.5 / math.pi), rtol=0.03)
     assert relit.specular.abs().max() < 1e-6
@@ -196,7 +244,9 @@ def test_negative_diffuse_and_monochrome_losses_are_zero_exactly_when_they_shoul
     assert torch.equal(normal_residual_loss(torch.zeros(1, 4, 3)), torch.zeros(1))
     assert torch.isclose(normal_residual_loss(torch.full((1, 4, 3), 0.5))[0], torch.tensor(0.75))
     prior = torch.rand(30, 3)
-    assert albedo_prior_loss(prior[None], prior)[0] == 0 and albedo_prior_loss(prior[None] + 0.1, prior)[0] > 0
+    assert (
+        albedo_prior_loss(prior[None], prior)[0] == 0 and albedo_prior_loss(prior[None] + 0.1, prior)[0] > 0
+    )
 
 
 def test_annealing_schedules_match_the_paper_endpoints():
@@ -226,7 +276,9 @@ def test_pattern_lights_cameras_and_errors():
 
 def test_single_stage_model_decodes_geometry_and_reflectance_with_gradients(sphere):
     template, binding = sphere
-    preset = get_preset("tiny").replace(uv_size=UV_SIZE, z_id_dim=8, start_channels=16, min_channels=8, mesh_hidden=16)
+    preset = get_preset("tiny").replace(
+        uv_size=UV_SIZE, z_id_dim=8, start_channels=16, min_channels=8, mesh_hidden=16
+    )
     model = SingleStageModel(preset, sh_order=3, template_vertices=template, binding=binding, subject_count=3)
     cameras = torch.tensor([[0.0, 0.0, 0.5], [0.0, 0.3, 0.4]])
     vertices, gaussians, params = model(torch.tensor([0, 2]), cameras)

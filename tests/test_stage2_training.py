@@ -61,13 +61,28 @@ def _render_lambert_sphere(albedo, K, w2c, lights):
 def write_olat_dataset(root: Path, name: str = "olat", subjects: int = 2, cameras: int = 3) -> Path:
     vertices, obj_text = sphere_obj()
     dataset_dir = root / name
-    info = DatasetInfo(name=name, kind="olat", template_mesh_id="sphere", lighting="4-light OLAT rig + full-on",
-                       provenance=Provenance(source_dataset="stage2 test sphere world", licence="CC0"),
-                       config_fingerprint=fingerprint_config({"name": name}))
+    info = DatasetInfo(
+        name=name,
+        kind="olat",
+        template_mesh_id="sphere",
+        lighting="4-light OLAT rig + full-on",
+        provenance=Provenance(source_dataset="stage2 test sphere world", licence="CC0"),
+        config_fingerprint=fingerprint_config({"name": name}),
+    )
     writer = ShardWriter(dataset_dir, info)
     writer.begin()
-    writer.write_lights([LightRow(index=k, name=f"L{k}", position_m=tuple(p), intensity_rgb=(LIGHT_INTENSITY,) * 3,
-                                  pattern=f"olat-{k:03d}") for k, p in enumerate(LIGHT_POSITIONS)])
+    writer.write_lights(
+        [
+            LightRow(
+                index=k,
+                name=f"L{k}",
+                position_m=tuple(p),
+                intensity_rgb=(LIGHT_INTENSITY,) * 3,
+                pattern=f"olat-{k:03d}",
+            )
+            for k, p in enumerate(LIGHT_POSITIONS)
+        ]
+    )
     K = np.array([[2.2 * SIZE, 0, (SIZE - 1) / 2], [0, 2.2 * SIZE, (SIZE - 1) / 2], [0, 0, 1.0]])
     rng = np.random.default_rng(3)
     for s in range(subjects):
@@ -78,24 +93,51 @@ def write_olat_dataset(root: Path, name: str = "olat", subjects: int = 2, camera
             for c in range(cameras):
                 angle = 0.6 * (c - 1)
                 w2c = look_at_w2c(0.5 * np.array([np.sin(angle), 0.1, np.cos(angle)]))
-                patterns = {"full": LIGHT_POSITIONS} | {f"olat-{k:03d}": LIGHT_POSITIONS[k : k + 1] for k in range(4)}
+                patterns = {"full": LIGHT_POSITIONS} | {
+                    f"olat-{k:03d}": LIGHT_POSITIONS[k : k + 1] for k in range(4)
+                }
                 for pattern, lights in patterns.items():
                     image, mask = _render_lambert_sphere(albedo, K, w2c, lights)
                     source = f"{subject}/{pattern}/cam{c:02d}.exr"
-                    part.add(build_image_row(
-                        dataset=name, subject=subject, frame=0, camera=f"cam{c:02d}", pattern=pattern, split="train",
-                        K=K, w2c=w2c, image=encode_image(image), image_encoding="raw-f16", mask=encode_mask(mask),
-                        width=SIZE, height=SIZE, source=source, source_sha256=hashlib.sha256(source.encode()).hexdigest(),
-                    ))
+                    part.add(
+                        build_image_row(
+                            dataset=name,
+                            subject=subject,
+                            frame=0,
+                            camera=f"cam{c:02d}",
+                            pattern=pattern,
+                            split="train",
+                            K=K,
+                            w2c=w2c,
+                            image=encode_image(image),
+                            image_encoding="raw-f16",
+                            mask=encode_mask(mask),
+                            width=SIZE,
+                            height=SIZE,
+                            source=source,
+                            source_sha256=hashlib.sha256(source.encode()).hexdigest(),
+                        )
+                    )
     writer.commit()
     (dataset_dir / "template.obj").write_text(obj_text)
     return dataset_dir
 
 
 def tiny_stage2_preset(**changes):
-    settings = dict(sh_order=2, base_channels=8, max_channels=16, crop_size=SIZE, batch_size=2, iterations=10,
-                    normal_anneal_iterations=5, albedo_anneal_iterations=5, checkpoint_every=5, log_every=2,
-                    learning_rate=5e-3, full_on_fraction=0.5)
+    settings = dict(
+        sh_order=2,
+        base_channels=8,
+        max_channels=16,
+        crop_size=SIZE,
+        batch_size=2,
+        iterations=10,
+        normal_anneal_iterations=5,
+        albedo_anneal_iterations=5,
+        checkpoint_every=5,
+        log_every=2,
+        learning_rate=5e-3,
+        full_on_fraction=0.5,
+    )
     settings.update(changes)
     return get_stage2_preset("tiny").replace(**settings)
 
@@ -106,8 +148,15 @@ def olat_world(tmp_path_factory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("olat-world")
     dataset = write_olat_dataset(root)
     run = root / "stage1"
-    train_stage1(Stage1Config([dataset], run, tiny_stage1_preset(iterations=4, crop_size=SIZE, held_out_cameras=0),
-                              progress=False, evaluate=False))
+    train_stage1(
+        Stage1Config(
+            [dataset],
+            run,
+            tiny_stage1_preset(iterations=4, crop_size=SIZE, held_out_cameras=0),
+            progress=False,
+            evaluate=False,
+        )
+    )
     return dataset, run
 
 
@@ -120,10 +169,14 @@ def _fixed_batch_losses(trainer: Stage2Trainer, batches: list[dict]) -> float:
 
 def test_stage2_trains_with_stage1_frozen_and_lowers_the_loss(olat_world, tmp_path):
     dataset, run = olat_world
-    trainer = Stage2Trainer(Stage2Config(dataset, tmp_path / "s2", tiny_stage2_preset(), stage1_run=run, progress=False))
+    trainer = Stage2Trainer(
+        Stage2Config(dataset, tmp_path / "s2", tiny_stage2_preset(), stage1_run=run, progress=False)
+    )
     assert trainer.frames.subjects == ["olat/s00", "olat/s01"]
     assert len(trainer.frames.olat) == 2 * 3 * 4 and len(trainer.frames.full_on) == 2 * 3
-    assert trainer.albedo_prior.shape == (trainer.stage1.binding.count, 3) and (trainer.albedo_prior > 0).all()
+    assert (
+        trainer.albedo_prior.shape == (trainer.stage1.binding.count, 3) and (trainer.albedo_prior > 0).all()
+    )
     stage1_before = {k: v.clone() for k, v in trainer.stage1.state_dict().items()}
     batches = [trainer.batch(i) for i in range(3)]
     # An OLAT batch lights one rig light per sample; a full-on sample has all four.
@@ -149,7 +202,11 @@ def test_resumed_stage2_run_ends_with_the_uninterrupted_weights(olat_world, tmp_
     preset = tiny_stage2_preset(iterations=4, checkpoint_every=2)
     whole = Stage2Trainer(Stage2Config(dataset, tmp_path / "whole", preset, stage1_run=run, progress=False))
     whole.train()
-    Stage2Trainer(Stage2Config(dataset, tmp_path / "split", preset.replace(iterations=2), stage1_run=run, progress=False)).train()
+    Stage2Trainer(
+        Stage2Config(
+            dataset, tmp_path / "split", preset.replace(iterations=2), stage1_run=run, progress=False
+        )
+    ).train()
     resumed = Stage2Trainer(Stage2Config(dataset, tmp_path / "split", preset, stage1_run=run, progress=False))
     resumed.train()
     assert resumed.start == 2
@@ -159,8 +216,14 @@ def test_resumed_stage2_run_ends_with_the_uninterrupted_weights(olat_world, tmp_
 
 def test_single_stage_flag_trains_through_the_same_trainer(olat_world, tmp_path):
     dataset, _ = olat_world
-    config = Stage2Config(dataset, tmp_path / "single", tiny_stage2_preset(), single_stage=True, progress=False,
-                          stage1_preset=tiny_stage1_preset(crop_size=SIZE))
+    config = Stage2Config(
+        dataset,
+        tmp_path / "single",
+        tiny_stage2_preset(),
+        single_stage=True,
+        progress=False,
+        stage1_preset=tiny_stage1_preset(crop_size=SIZE),
+    )
     trainer = Stage2Trainer(config)
     assert trainer.albedo_prior is None and not hasattr(trainer, "stage1")
     batches = [trainer.batch(i) for i in range(3)]
@@ -168,12 +231,17 @@ def test_single_stage_flag_trains_through_the_same_trainer(olat_world, tmp_path)
     metrics = trainer.train()
     after = _fixed_batch_losses(trainer, batches)
     assert after < 0.9 * before, (before, after)
-    assert metrics["mode"] == "single-stage" and {"geometry", "scale", "offset"} <= set(metrics["last_losses"])
+    assert metrics["mode"] == "single-stage" and {"geometry", "scale", "offset"} <= set(
+        metrics["last_losses"]
+    )
     assert load_checkpoint(tmp_path / "single" / "checkpoint.pt")["single_stage"] is True
     # Resuming the finished run in the other mode is refused instead of mixing weights.
     with pytest.raises(ValueError, match="another mode"):
-        Stage2Trainer(Stage2Config(dataset, tmp_path / "single", tiny_stage2_preset(), stage1_run=olat_world[1],
-                                   progress=False)).resume_if_possible()
+        Stage2Trainer(
+            Stage2Config(
+                dataset, tmp_path / "single", tiny_stage2_preset(), stage1_run=olat_world[1], progress=False
+            )
+        ).resume_if_possible()
 
 
 def test_cli_trains_stage2_and_explains_bad_input(olat_world, tmp_path):
@@ -181,17 +249,38 @@ def test_cli_trains_stage2_and_explains_bad_input(olat_world, tmp_path):
 
     dataset, run = olat_world
     runner = CliRunner()
-    result = runner.invoke(COMMANDS["train"], ["stage2", "--data", str(dataset), "--stage1", str(run), "--out",
-                                               str(tmp_path / "cli"), "--iterations", "2", "--batch-size", "1"])
+    result = runner.invoke(
+        COMMANDS["train"],
+        [
+            "stage2",
+            "--data",
+            str(dataset),
+            "--stage1",
+            str(run),
+            "--out",
+            str(tmp_path / "cli"),
+            "--iterations",
+            "2",
+            "--batch-size",
+            "1",
+        ],
+    )
     assert result.exit_code == 0, result.output
     assert load_checkpoint(tmp_path / "cli" / "checkpoint.pt")["iteration"] == 2
-    missing = runner.invoke(COMMANDS["train"], ["stage2", "--data", str(dataset), "--out", str(tmp_path / "x")])
+    missing = runner.invoke(
+        COMMANDS["train"], ["stage2", "--data", str(dataset), "--out", str(tmp_path / "x")]
+    )
     assert missing.exit_code != 0 and "--stage1" in missing.output
     from stage1_world import write_dataset
 
     flat = write_dataset(tmp_path, "flat", subjects=1, cameras=2, size=16)
-    no_rig = runner.invoke(COMMANDS["train"], ["stage2", "--data", str(flat), "--single-stage", "--out", str(tmp_path / "y")])
+    no_rig = runner.invoke(
+        COMMANDS["train"], ["stage2", "--data", str(flat), "--single-stage", "--out", str(tmp_path / "y")]
+    )
     assert no_rig.exit_code != 0 and "lights.arrow" in no_rig.output
     other = write_olat_dataset(tmp_path, "other", subjects=1, cameras=1)
-    unknown = runner.invoke(COMMANDS["train"], ["stage2", "--data", str(other), "--stage1", str(run), "--out", str(tmp_path / "z")])
+    unknown = runner.invoke(
+        COMMANDS["train"],
+        ["stage2", "--data", str(other), "--stage1", str(run), "--out", str(tmp_path / "z")],
+    )
     assert unknown.exit_code != 0 and "not trained on dataset 'other'" in unknown.output
