@@ -64,9 +64,9 @@ PRESETS: dict[str, Preset] = {
         template_segments=72,
         texture_size=256,
         supersampling=1,
-        answer_lights=48,
+        answer_lights=32,
         envmap_count=4,
-        d1=DatasetSize(train_subjects=12, test_subjects=3, cameras=16, image_size=(192, 288), lights=48),
+        d1=DatasetSize(train_subjects=12, test_subjects=3, cameras=12, image_size=(192, 288), lights=32),
         d2=DatasetSize(
             train_subjects=14, test_subjects=2, cameras=24, image_size=(167, 256), frames=2, lights=32
         ),
