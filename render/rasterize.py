@@ -6,7 +6,8 @@ feature images, alpha and expected depth, differentiable with respect to every f
 Backends (``backend=``):
 
 - ``"gsplat"``: ``gsplat.rasterization`` on CUDA (the ``cuda`` extra);
-- ``"cpp"``: PyTorch projection and binning + the compiled C++/OpenMP tile compositor (CPU, float32);
+- ``"cpp"``: compiled C++/OpenMP projection, tile binning and compositor (CPU, float32; the PyTorch
+  projection when the cameras need gradients);
 - ``"torch"``: PyTorch projection, binning and batched tile compositing (any device and dtype);
 - ``"dense"``: the brute-force reference, every pixel × every Gaussian (tests, small scenes);
 - ``"auto"``: gsplat for CUDA tensors when installed, else cpp for float32 CPU tensors when the kernel
@@ -40,7 +41,9 @@ def _check_tensor(name: str, tensor: Tensor, shape: tuple) -> None:
     """Raise a ValueError naming the tensor when its shape (None = any size) or values are wrong."""
     if not isinstance(tensor, Tensor):
         raise TypeError(f"rasterize: {name} must be a torch.Tensor, got {type(tensor).__name__}")
-    if tensor.dim() != len(shape) or any(s is not None and s != t for s, t in zip(shape, tensor.shape, strict=True)):
+    if tensor.dim() != len(shape) or any(
+        s is not None and s != t for s, t in zip(shape, tensor.shape, strict=True)
+    ):
         wanted = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
         raise ValueError(f"rasterize: {name} must have shape {wanted}, got {tuple(tensor.shape)}")
     if not tensor.is_floating_point():
@@ -134,7 +137,9 @@ def rasterize(
 
     chosen = select_backend(backend, means)
     if chosen == "cpp" and means.device.type != "cpu":
-        raise ValueError(f"rasterize: backend 'cpp' runs on the CPU, got tensors on {means.device}; use 'auto'")
+        raise ValueError(
+            f"rasterize: backend 'cpp' runs on the CPU, got tensors on {means.device}; use 'auto'"
+        )
     if chosen == "cpp" and tile_size != 16:
         raise ValueError(f"rasterize: backend 'cpp' uses 16x16 tiles, got tile_size={tile_size}")
     if chosen == "gsplat":
@@ -148,29 +153,58 @@ def rasterize(
     if chosen == "gsplat":
         from .rasterize_gsplat import rasterize_gsplat
 
-        return RasterOutput(*rasterize_gsplat(
-            means, quats, scales, opacities, features, w2c, K, width, height, background, mode, near, far,
-            eps2d, tile_size,
-        ))
+        return RasterOutput(
+            *rasterize_gsplat(
+                means,
+                quats,
+                scales,
+                opacities,
+                features,
+                w2c,
+                K,
+                width,
+                height,
+                background,
+                mode,
+                near,
+                far,
+                eps2d,
+                tile_size,
+            )
+        )
 
-    projection = project_gaussians(
-        means, quats, scales, opacities, w2c, K, width, height, mode=mode, eps2d=eps2d, near=near, far=far
-    )
+    compiled = None
+    if chosen == "cpp":
+        from . import rasterize_cpp as compiled
+
+        if compiled.load_tile_kernel() is None:
+            compiled = None
+    # The fused compiled projection has no camera gradients: optimised cameras take the PyTorch projection.
+    if compiled is not None and means.dtype == torch.float32 and not (w2c.requires_grad or K.requires_grad):
+        projection = compiled.project_gaussians_cpp(
+            means, quats, scales, opacities, w2c, K, width, height, mode=mode, eps2d=eps2d, near=near, far=far
+        )
+    else:
+        projection = project_gaussians(
+            means, quats, scales, opacities, w2c, K, width, height, mode=mode, eps2d=eps2d, near=near, far=far
+        )
     # Depth is composited as one more channel (with a zero background), like gsplat's "RGB+ED".
     colors = torch.cat([features, projection.depths[..., None].to(features.dtype)], dim=-1)
     background_ext = torch.cat([background, background.new_zeros(C, 1)], dim=-1)
     if chosen == "dense":
         image, alpha = composite_dense(projection, colors, background_ext, width, height)
     else:
-        bins = bin_gaussians_to_tiles(projection.means2d, projection.radii, projection.depths, width, height, tile_size)
-        if chosen == "cpp":
-            from .rasterize_cpp import composite_tiles_cpp, load_tile_kernel
-
-            if load_tile_kernel() is None:
-                image, alpha = composite_tiles_torch(projection, colors, background_ext, bins, width, height)
-            else:
-                image, alpha = composite_tiles_cpp(projection, colors, background_ext, bins, width, height)
+        if compiled is not None:
+            bins = compiled.bin_gaussians_to_tiles_cpp(
+                projection.means2d, projection.radii, projection.depths, width, height, tile_size
+            )
+            image, alpha = compiled.composite_tiles_cpp(
+                projection, colors, background_ext, bins, width, height
+            )
         else:
+            bins = bin_gaussians_to_tiles(
+                projection.means2d, projection.radii, projection.depths, width, height, tile_size
+            )
             image, alpha = composite_tiles_torch(projection, colors, background_ext, bins, width, height)
     image = image.permute(0, 3, 1, 2)
     alpha = alpha[:, None]

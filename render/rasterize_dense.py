@@ -36,7 +36,9 @@ def composite_dense(
     C, N, D = colors.shape
     device, dtype = colors.device, colors.dtype
     ys, xs = torch.meshgrid(
-        torch.arange(height, device=device, dtype=dtype), torch.arange(width, device=device, dtype=dtype), indexing="ij"
+        torch.arange(height, device=device, dtype=dtype),
+        torch.arange(width, device=device, dtype=dtype),
+        indexing="ij",
     )
     pixels = torch.stack([xs, ys], dim=-1).reshape(-1, 2)
     rows_per_chunk = max(1, DENSE_CHUNK_ELEMENTS // max(1, N * width))
@@ -45,12 +47,15 @@ def composite_dense(
         order = torch.sort(projection.depths[cam].detach(), stable=True).indices
         valid = (projection.radii[cam] > 0).any(-1)[order]
         args = (
-            projection.means2d[cam, order], projection.conics[cam, order], projection.opacities[cam, order],
-            colors[cam, order], valid,
+            projection.means2d[cam, order],
+            projection.conics[cam, order],
+            projection.opacities[cam, order],
+            colors[cam, order],
+            valid,
         )
         rows_colors, rows_transmittance = [], []
         for row in range(0, height, rows_per_chunk):
-            chunk_pixels = pixels[row * width:min(height, row + rows_per_chunk) * width]
+            chunk_pixels = pixels[row * width : min(height, row + rows_per_chunk) * width]
             if torch.is_grad_enabled():
                 out, transmittance = checkpoint(_composite_rows, *args, chunk_pixels, use_reentrant=False)
             else:

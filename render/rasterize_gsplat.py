@@ -55,9 +55,23 @@ def rasterize_gsplat(
     K_gsplat[:, 0, 2] += 0.5
     K_gsplat[:, 1, 2] += 0.5
     colors, alphas, _meta = rasterization(
-        means, quats, scales, opacities, features, w2c, K_gsplat, width, height,
-        near_plane=near, far_plane=far, eps2d=eps2d, packed=False, tile_size=tile_size,
-        backgrounds=background, render_mode="RGB+ED", rasterize_mode=mode,
+        means,
+        quats,
+        scales,
+        opacities,
+        features,
+        w2c,
+        K_gsplat,
+        width,
+        height,
+        near_plane=near,
+        far_plane=far,
+        eps2d=eps2d,
+        packed=False,
+        tile_size=tile_size,
+        backgrounds=background,
+        render_mode="RGB+ED",
+        rasterize_mode=mode,
     )
     image = colors[..., :-1].permute(0, 3, 1, 2)
     depth = colors[..., -1:].permute(0, 3, 1, 2)

@@ -75,7 +75,9 @@ def _matmul3(a: Tensor, b: Tensor) -> Tensor:
 def _row_times_matrix(row: Tensor, matrix: Tensor) -> Tensor:
     """Row vectors times per-Gaussian matrices: row (C,N,3), matrix (N,3,3) → (C,N,3) = row @ matrix."""
     return (
-        row[..., 0:1] * matrix[None, :, 0, :] + row[..., 1:2] * matrix[None, :, 1, :] + row[..., 2:3] * matrix[None, :, 2, :]
+        row[..., 0:1] * matrix[None, :, 0, :]
+        + row[..., 1:2] * matrix[None, :, 1, :]
+        + row[..., 2:3] * matrix[None, :, 2, :]
     )
 
 
@@ -110,8 +112,10 @@ def project_gaussians(
     """
     rotation, translation = w2c[:, :3, :3], w2c[:, :3, 3]
     means_cam = (
-        means[None, :, 0:1] * rotation[:, None, :, 0] + means[None, :, 1:2] * rotation[:, None, :, 1]
-        + means[None, :, 2:3] * rotation[:, None, :, 2] + translation[:, None, :]
+        means[None, :, 0:1] * rotation[:, None, :, 0]
+        + means[None, :, 1:2] * rotation[:, None, :, 1]
+        + means[None, :, 2:3] * rotation[:, None, :, 2]
+        + translation[:, None, :]
     )  # (C,N,3)
 
     z = means_cam[..., 2]
@@ -122,15 +126,23 @@ def project_gaussians(
     cx, cy = K[:, 0, 2, None] + 0.5, K[:, 1, 2, None] + 0.5  # gsplat's frame: pixel centres at +0.5
     tan_fov_x, tan_fov_y = 0.5 * width / fx, 0.5 * height / fy
     # Clamp the Jacobian's x/z, y/z to 1.3× the field of view (Gaussians far outside the image would blow up).
-    x_over_z = torch.minimum(torch.maximum(means_cam[..., 0] / z_safe, -(cx / fx + 0.3 * tan_fov_x)),
-                             (width - cx) / fx + 0.3 * tan_fov_x)
-    y_over_z = torch.minimum(torch.maximum(means_cam[..., 1] / z_safe, -(cy / fy + 0.3 * tan_fov_y)),
-                             (height - cy) / fy + 0.3 * tan_fov_y)
+    x_over_z = torch.minimum(
+        torch.maximum(means_cam[..., 0] / z_safe, -(cx / fx + 0.3 * tan_fov_x)),
+        (width - cx) / fx + 0.3 * tan_fov_x,
+    )
+    y_over_z = torch.minimum(
+        torch.maximum(means_cam[..., 1] / z_safe, -(cy / fy + 0.3 * tan_fov_y)),
+        (height - cy) / fy + 0.3 * tan_fov_y,
+    )
     # cov2d = J W Σ Wᵀ Jᵀ with Σ = (R S)(R S)ᵀ, so cov2d = A Aᵀ with A = J W R S (2×3): two rows, each a
     # broadcast multiply-add on (C,N,3) tensors (much faster on the CPU than millions of tiny bmm's).
     # Row i of J W: J has rows (fx/z, 0, -fx x/z²) and (0, fy/z, -fy y/z²).
-    jw_x = (fx / z_safe)[..., None] * (rotation[:, None, 0, :] - x_over_z[..., None] * rotation[:, None, 2, :])
-    jw_y = (fy / z_safe)[..., None] * (rotation[:, None, 1, :] - y_over_z[..., None] * rotation[:, None, 2, :])
+    jw_x = (fx / z_safe)[..., None] * (
+        rotation[:, None, 0, :] - x_over_z[..., None] * rotation[:, None, 2, :]
+    )
+    jw_y = (fy / z_safe)[..., None] * (
+        rotation[:, None, 1, :] - y_over_z[..., None] * rotation[:, None, 2, :]
+    )
     rotation_gauss = quaternion_to_rotation_matrix(quats)  # (N,3,3)
     a_x = _row_times_matrix(jw_x, rotation_gauss) * scales[None]  # (C,N,3)
     a_y = _row_times_matrix(jw_y, rotation_gauss) * scales[None]
@@ -144,7 +156,10 @@ def project_gaussians(
     conics = torch.stack([cov_yy / det_safe, -cov_xy / det_safe, cov_xx / det_safe], dim=-1)
 
     means2d = torch.stack(
-        [fx * means_cam[..., 0] / z_safe + K[:, 0, 2, None], fy * means_cam[..., 1] / z_safe + K[:, 1, 2, None]],
+        [
+            fx * means_cam[..., 0] / z_safe + K[:, 0, 2, None],
+            fy * means_cam[..., 1] / z_safe + K[:, 1, 2, None],
+        ],
         dim=-1,
     )
     opacities_cam = opacities[None, :].expand(z.shape)
@@ -156,19 +171,28 @@ def project_gaussians(
 
     with torch.no_grad():
         opaque_enough = opacities_cam >= ALPHA_THRESHOLD
-        extent = torch.sqrt(2.0 * torch.log(torch.clamp(opacities_cam, min=ALPHA_THRESHOLD) / ALPHA_THRESHOLD))
+        extent = torch.sqrt(
+            2.0 * torch.log(torch.clamp(opacities_cam, min=ALPHA_THRESHOLD) / ALPHA_THRESHOLD)
+        )
         extent = torch.clamp(extent, max=EXTENT_MAX)
         radius_x = torch.ceil(extent * torch.sqrt(torch.clamp(cov_xx, min=0.0)))
         radius_y = torch.ceil(extent * torch.sqrt(torch.clamp(cov_yy, min=0.0)))
         centre_x, centre_y = means2d[..., 0] + 0.5, means2d[..., 1] + 0.5
         on_screen = (
-            (centre_x + radius_x > 0) & (centre_x - radius_x < width)
-            & (centre_y + radius_y > 0) & (centre_y - radius_y < height)
+            (centre_x + radius_x > 0)
+            & (centre_x - radius_x < width)
+            & (centre_y + radius_y > 0)
+            & (centre_y - radius_y < height)
         )
         # A Gaussian with all three scales zero has no extent; gsplat would still draw it as an eps2d-sized dot.
         has_extent = (scales != 0).any(-1)[None, :]
         visible = (
-            in_depth_range & det_positive & opaque_enough & has_extent & ((radius_x > 0) | (radius_y > 0)) & on_screen
+            in_depth_range
+            & det_positive
+            & opaque_enough
+            & has_extent
+            & ((radius_x > 0) | (radius_y > 0))
+            & on_screen
         )
         radii = torch.stack([radius_x, radius_y], dim=-1) * visible[..., None]
         radii = radii.to(torch.int32)
@@ -212,7 +236,9 @@ def bin_gaussians_to_tiles(
         tile_ids = camera * tiles_per_camera + tile_y * tiles_x + tile_x
 
         depth_rank = torch.empty(C * N, dtype=torch.long, device=device)
-        depth_rank[torch.sort(depths.detach().reshape(-1), stable=True).indices] = torch.arange(C * N, device=device)
+        depth_rank[torch.sort(depths.detach().reshape(-1), stable=True).indices] = torch.arange(
+            C * N, device=device
+        )
         order = torch.sort(tile_ids * (C * N) + depth_rank[gaussian_ids]).indices
         flatten_ids = gaussian_ids[order]
         per_tile = torch.bincount(tile_ids, minlength=C * tiles_per_camera)
@@ -236,11 +262,15 @@ def alpha_composite(alphas: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
         keep = torch.cumprod(1.0 - alphas, dim=-1) > TRANSMITTANCE_MIN
     alphas = torch.where(keep, alphas, torch.zeros_like(alphas))
     transmittance_after = torch.cumprod(1.0 - alphas, dim=-1)
-    transmittance_before = torch.cat([torch.ones_like(alphas[..., :1]), transmittance_after[..., :-1]], dim=-1)
+    transmittance_before = torch.cat(
+        [torch.ones_like(alphas[..., :1]), transmittance_after[..., :-1]], dim=-1
+    )
     return alphas * transmittance_before, transmittance_after[..., -1]
 
 
-def gaussian_alphas(means2d: Tensor, conics: Tensor, opacities: Tensor, pixels: Tensor) -> tuple[Tensor, Tensor]:
+def gaussian_alphas(
+    means2d: Tensor, conics: Tensor, opacities: Tensor, pixels: Tensor
+) -> tuple[Tensor, Tensor]:
     """Raw ``o·exp(-σ)`` of Gaussians at pixels, with ``σ ≥ 0`` as validity.
 
     means2d (..., 1, L, 2), conics (..., 1, L, 3), opacities (..., 1, L), pixels (..., P, 1, 2)
@@ -261,7 +291,9 @@ def _composite_chunk(
     (pixels of partial tiles beyond the image are composited too and cropped later)
     → (colors (n,P,D), transmittance (n,P)).
     """
-    alphas, sigma_ok = gaussian_alphas(means2d[:, None], conics[:, None], opacities[:, None], pixels[:, :, None])
+    alphas, sigma_ok = gaussian_alphas(
+        means2d[:, None], conics[:, None], opacities[:, None], pixels[:, :, None]
+    )
     weights, transmittance = alpha_composite(alphas, sigma_ok & valid[:, None, :])
     return weights @ colors, transmittance
 
@@ -300,13 +332,17 @@ def composite_tiles_torch(
     lengths, group_sizes = torch.unique_consecutive(padded, return_counts=True)
     boundaries = torch.cumsum(group_sizes, 0)
     starts = boundaries - group_sizes
-    for length, group_start, group_end in zip(lengths.tolist(), starts.tolist(), boundaries.tolist(), strict=True):
+    for length, group_start, group_end in zip(
+        lengths.tolist(), starts.tolist(), boundaries.tolist(), strict=True
+    ):
         tiles_per_chunk = max(1, CHUNK_ELEMENTS // (ts * ts * length))
         for chunk_start in range(group_start, group_end, tiles_per_chunk):
-            tiles = occupied[chunk_start:min(chunk_start + tiles_per_chunk, group_end)]
+            tiles = occupied[chunk_start : min(chunk_start + tiles_per_chunk, group_end)]
             slot = torch.arange(length, device=device)
             valid = slot[None, :] < counts[tiles, None]
-            isect = torch.clamp(bins.tile_offsets[tiles, None] + slot, max=max(bins.flatten_ids.numel() - 1, 0))
+            isect = torch.clamp(
+                bins.tile_offsets[tiles, None] + slot, max=max(bins.flatten_ids.numel() - 1, 0)
+            )
             ids = bins.flatten_ids[isect]
             camera_tile = tiles % (tiles_x * tiles_y)
             origin = torch.stack([camera_tile % tiles_x, camera_tile // tiles_x], dim=-1).to(dtype) * ts
@@ -341,4 +377,8 @@ def composite_tiles_torch(
 
 def _tiles_to_image(tiles: Tensor, C: int, tiles_y: int, tiles_x: int, ts: int, D: int) -> Tensor:
     """(C·ty·tx, ts·ts, D) tile-major pixels → (C, ty·ts, tx·ts, D) image."""
-    return tiles.reshape(C, tiles_y, tiles_x, ts, ts, D).permute(0, 1, 3, 2, 4, 5).reshape(C, tiles_y * ts, tiles_x * ts, D)
+    return (
+        tiles.reshape(C, tiles_y, tiles_x, ts, ts, D)
+        .permute(0, 1, 3, 2, 4, 5)
+        .reshape(C, tiles_y * ts, tiles_x * ts, D)
+    )

@@ -26,7 +26,9 @@ def test_cpu_backends_agree_with_gsplat_cuda(mode):
     background = torch.tensor([0.1, 0.2, 0.3, 0.4])
     cpu_out, cpu_grads = render_with_grads(scene, "torch", torch.float32, mode=mode, background=background)
     cuda_scene = {k: (v.cuda() if isinstance(v, torch.Tensor) else v) for k, v in scene.items()}
-    gpu_out, gpu_grads = render_with_grads(cuda_scene, "gsplat", torch.float32, mode=mode, background=background.cuda())
+    gpu_out, gpu_grads = render_with_grads(
+        cuda_scene, "gsplat", torch.float32, mode=mode, background=background.cuda()
+    )
     assert float(cpu_out[1].max()) > 0.5
     for label, a, b in zip(("features", "alpha", "depth"), gpu_out, cpu_out, strict=True):
         assert_close(a.cpu(), b, 1e-4, label)

@@ -16,7 +16,11 @@ BACKGROUND = torch.tensor([0.25, 0.5, 0.75])
 
 def assert_empty(out, C, H, W):
     out = type(out)(*(t.detach() for t in out))
-    assert out.features.shape == (C, 3, H, W) and out.alpha.shape == (C, 1, H, W) and out.depth.shape == (C, 1, H, W)
+    assert (
+        out.features.shape == (C, 3, H, W)
+        and out.alpha.shape == (C, 1, H, W)
+        and out.depth.shape == (C, 1, H, W)
+    )
     torch.testing.assert_close(out.features, BACKGROUND.view(1, 3, 1, 1).expand(C, 3, H, W))
     assert float(out.alpha.abs().max()) == 0.0
     assert float(out.depth.abs().max()) == 0.0

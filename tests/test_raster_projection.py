@@ -27,12 +27,27 @@ def test_projection_equals_gsplat_torch_reference(mode):
     scene = random_scene(n=200, cameras=3, width=64, height=48, seed=2)
     # push a few Gaussians far to the side so that the Jacobian clamp is exercised
     scene["means"][:10, 0] += 0.8
-    ours = project_gaussians(scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["w2c"],
-                             scene["K"], 64, 48, mode=mode)
+    ours = project_gaussians(
+        scene["means"],
+        scene["quats"],
+        scene["scales"],
+        scene["opacities"],
+        scene["w2c"],
+        scene["K"],
+        64,
+        48,
+        mode=mode,
+    )
     covars, _ = torch_impl._quat_scale_to_covar_preci(scene["quats"], scene["scales"], compute_preci=False)
     radii, means2d, depths, conics, compensations = torch_impl._fully_fused_projection(
-        scene["means"], covars, scene["w2c"], shifted_K(scene["K"]), 64, 48,
-        eps2d=0.3, calc_compensations=(mode == "antialiased"),
+        scene["means"],
+        covars,
+        scene["w2c"],
+        shifted_K(scene["K"]),
+        64,
+        48,
+        eps2d=0.3,
+        calc_compensations=(mode == "antialiased"),
     )
     visible = (ours.radii > 0).any(-1)
     assert int(visible.sum()) > 300
@@ -55,14 +70,15 @@ def test_covariance_matches_gsplat():
 
 def test_binning_lists_every_touched_tile_sorted_by_depth():
     scene = random_scene(n=60, cameras=2, width=70, height=50, seed=9)
-    proj = project_gaussians(scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["w2c"],
-                             scene["K"], 70, 50)
+    proj = project_gaussians(
+        scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["w2c"], scene["K"], 70, 50
+    )
     bins = bin_gaussians_to_tiles(proj.means2d, proj.radii, proj.depths, 70, 50, tile_size=16)
     tiles_per_camera = bins.tiles_x * bins.tiles_y
     flat_depths = proj.depths.reshape(-1)
     pairs = set()
     for tile in range(bins.tile_offsets.numel() - 1):
-        ids = bins.flatten_ids[bins.tile_offsets[tile]:bins.tile_offsets[tile + 1]]
+        ids = bins.flatten_ids[bins.tile_offsets[tile] : bins.tile_offsets[tile + 1]]
         assert bool((ids // 60 == tile // tiles_per_camera).all()), "a tile lists another camera's Gaussian"
         assert bool((flat_depths[ids].diff() >= 0).all()), "tile list not sorted front to back"
         pairs.update((int(i), tile) for i in ids)
@@ -76,6 +92,11 @@ def test_binning_lists_every_touched_tile_sorted_by_depth():
         x, y = (float(v) + 0.5 for v in proj.means2d[c, n])
         for ty in range(bins.tiles_y):
             for tx in range(bins.tiles_x):
-                if x + rx > tx * 16 and x - rx < (tx + 1) * 16 and y + ry > ty * 16 and y - ry < (ty + 1) * 16:
+                if (
+                    x + rx > tx * 16
+                    and x - rx < (tx + 1) * 16
+                    and y + ry > ty * 16
+                    and y - ry < (ty + 1) * 16
+                ):
                     expected.add((flat, c * tiles_per_camera + ty * bins.tiles_x + tx))
     assert pairs == expected

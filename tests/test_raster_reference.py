@@ -39,14 +39,20 @@ def random_scene(
     for c in range(cameras):
         angle = 0.3 * c
         w2c[c, 0, 0], w2c[c, 0, 2], w2c[c, 2, 0], w2c[c, 2, 2] = (
-            torch.cos(torch.tensor(angle)), torch.sin(torch.tensor(angle)),
-            -torch.sin(torch.tensor(angle)), torch.cos(torch.tensor(angle)),
+            torch.cos(torch.tensor(angle)),
+            torch.sin(torch.tensor(angle)),
+            -torch.sin(torch.tensor(angle)),
+            torch.cos(torch.tensor(angle)),
         )
         w2c[c, :3, 3] = torch.tensor([0.01 * c, -0.02 * c, 1.0])
     focal = 1.1 * width
-    K = torch.tensor([[focal, 0.0, (width - 1) / 2 + 0.3], [0.0, focal * 1.05, (height - 1) / 2 - 0.2], [0, 0, 1]],
-                     dtype=torch.float64).repeat(cameras, 1, 1)
-    scene = dict(means=means, quats=quats, scales=scales, opacities=opacities, features=features, w2c=w2c, K=K)
+    K = torch.tensor(
+        [[focal, 0.0, (width - 1) / 2 + 0.3], [0.0, focal * 1.05, (height - 1) / 2 - 0.2], [0, 0, 1]],
+        dtype=torch.float64,
+    ).repeat(cameras, 1, 1)
+    scene = dict(
+        means=means, quats=quats, scales=scales, opacities=opacities, features=features, w2c=w2c, K=K
+    )
     scene = {k: v.float().to(dtype) for k, v in scene.items()}
     return {**scene, "width": width, "height": height}
 
@@ -68,7 +74,9 @@ def render_with_grads(scene: dict, backend: str, dtype: torch.dtype, seed: int =
 # --------------------------------------------------------------------------------------------------------
 # Reference checks: tiled backends against the dense every-pixel × every-Gaussian oracle.
 
-needs_kernel = pytest.mark.skipif(not tile_kernel_available(), reason="C++ rasterizer kernel could not be built")
+needs_kernel = pytest.mark.skipif(
+    not tile_kernel_available(), reason="C++ rasterizer kernel could not be built"
+)
 
 
 @pytest.fixture(autouse=True)
@@ -129,8 +137,16 @@ def test_opaque_scene_exercises_cap_and_early_stop():
     scene = random_scene(**SCENES["opaque-deep"])
     out, _ = render_with_grads(scene, "dense", torch.float64)
     assert float(out[1].max()) > 1 - 1e-3  # transmittance reached the stop threshold region
-    proj = project_gaussians(scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["w2c"],
-                             scene["K"], scene["width"], scene["height"])
+    proj = project_gaussians(
+        scene["means"],
+        scene["quats"],
+        scene["scales"],
+        scene["opacities"],
+        scene["w2c"],
+        scene["K"],
+        scene["width"],
+        scene["height"],
+    )
     assert float(proj.opacities.max()) > 0.999
 
 
@@ -143,8 +159,15 @@ def test_gradcheck_torch_backend_float64():
 
     def render(*tensors):
         kwargs = dict(zip(names, tensors, strict=True))
-        out = rasterize(**kwargs, w2c=scene["w2c"], K=scene["K"], width=11, height=9, backend="torch",
-                        background=torch.tensor([0.2, 0.1, 0.3], dtype=torch.float64))
+        out = rasterize(
+            **kwargs,
+            w2c=scene["w2c"],
+            K=scene["K"],
+            width=11,
+            height=9,
+            backend="torch",
+            background=torch.tensor([0.2, 0.1, 0.3], dtype=torch.float64),
+        )
         return out.features, out.alpha, out.depth
 
     assert float(render(*inputs)[1].detach().max()) > 0.3
@@ -158,8 +181,19 @@ def test_gradcheck_antialiased_mode_float64():
     inputs = tuple(scene[k].clone().requires_grad_(True) for k in ("means", "scales", "opacities"))
 
     def render(means, scales, opacities):
-        out = rasterize(means, scene["quats"], scales, opacities, scene["features"], scene["w2c"], scene["K"],
-                        9, 8, mode="antialiased", backend="torch")
+        out = rasterize(
+            means,
+            scene["quats"],
+            scales,
+            opacities,
+            scene["features"],
+            scene["w2c"],
+            scene["K"],
+            9,
+            8,
+            mode="antialiased",
+            backend="torch",
+        )
         return out.features, out.alpha
 
     assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)

@@ -1,15 +1,18 @@
-// Tile compositing of projected 3D Gaussians on the CPU: forward and exact backward.
+// Tile compositing of projected 3D Gaussians on the CPU: forward and exact backward (and the module's
+// Python bindings; projection and binning live in project_gaussians.cpp and bin_tiles.cpp).
 //
 // Semantics are gsplat 1.5.3's rasterize_to_pixels (EWA splatting): per pixel, front to back along the
 // tile's depth-sorted list, alpha = min(0.999, o * exp(-sigma)), skip sigma < 0 or alpha < 1/255, stop
 // before the Gaussian that would take the transmittance to <= 1e-4. Pixel centres are at integer
-// coordinates (the project's convention). One OpenMP task per tile; inside a tile the pixels of a
-// Gaussian's screen box are processed as SIMD rows.
+// coordinates (the project's convention). One OpenMP task per tile; inside a tile, each row of a Gaussian's
+// screen box is narrowed to the columns its alpha >= 1/255 ellipse can reach (with a safety margin), and
+// only the 8-pixel halves of the row that overlap them are evaluated, as SIMD vectors.
 //
 // The backward walks each pixel front to back again (recomputing the transmittance exactly instead of
 // dividing it back out), gets the colour still to come from the forward output minus the running prefix,
-// and writes one gradient row per intersection; rows are then summed per Gaussian. No atomics, and the
-// result does not depend on the thread count.
+// and writes one gradient row per intersection; rows are then summed per Gaussian, each thread owning a
+// range of Gaussians and adding their rows in list order. No atomics, and the result does not depend on
+// the thread count.
 
 #include <torch/extension.h>
 
@@ -17,6 +20,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <omp.h>
 #include <vector>
 
 namespace {
@@ -24,8 +28,9 @@ namespace {
 constexpr float kAlphaThreshold = 1.0f / 255.0f;
 constexpr float kAlphaMax = 0.999f;
 constexpr float kTransmittanceMin = 1e-4f;
-// Tiles are 16 x 16: a tile row is exactly two AVX2 vectors, so rows are processed whole, without scalar
-// remainders; lanes outside a Gaussian's box are evaluated like gsplat evaluates every pixel of a tile.
+// Tiles are 16 x 16: a tile row is exactly two AVX2 vectors, so the halves of a row are processed whole,
+// without scalar remainders; lanes of a half outside the Gaussian's chord are evaluated and fail the alpha
+// test, like gsplat evaluates every pixel of a tile.
 constexpr int kTile = 16;
 constexpr int kTilePixels = kTile * kTile;
 
@@ -78,19 +83,69 @@ inline float exp_nonpositive(float x) {
     return p * scale;
 }
 
+// Per (Gaussian, tile): what is needed to narrow each row to the columns with alpha >= 1/255.
+// In exact arithmetic sigma(dx) = a/2 (dx - dx0)^2 + det/(2a) dy^2 with dx0 = -b dy / a, and alpha >= 1/255
+// needs sigma <= ln(255 o). The bound is widened (relative and absolute slack on the log, one pixel on each
+// side) so that float rounding of the kernel's own sigma and exp can never make a skipped pixel count. The
+// constants are formed in double (det = ac - b^2 cancels for thin ellipses) and the per-row part, which only
+// adds well-scaled terms, runs in float.
+struct RowBound {
+    float mx, b_over_a, half_det_over_a, two_over_a, log_limit;
+    bool usable;  // false for a conic that is not positive definite: every row is evaluated whole
+};
+
+RowBound row_bound(float mx, float a, float b, float c, float o) {
+    RowBound r{};
+    r.mx = mx;
+    r.usable = a > 0.0f && o > 0.0f;
+    if (!r.usable) return r;
+    const double da = a, db = b, dc = c;
+    r.b_over_a = static_cast<float>(db / da);
+    r.half_det_over_a = static_cast<float>(0.5 * (da * dc - db * db) / da);
+    r.two_over_a = static_cast<float>(2.0 / da);
+    const double limit = std::log(255.0 * static_cast<double>(o));
+    r.log_limit = static_cast<float>(limit + 1e-3 * std::abs(limit) + 1e-2);
+    return r;
+}
+
+// Columns [x0, x1) of row y (dy = my - y) that may reach alpha >= 1/255, clipped to [bx0, bx1); false when none.
+inline bool row_span(const RowBound& r, float dy, int bx0, int bx1, int& x0, int& x1) {
+    if (!r.usable) {
+        x0 = bx0;
+        x1 = bx1;
+        return true;
+    }
+    const float room = r.log_limit - r.half_det_over_a * dy * dy;
+    if (room < 0.0f) return false;
+    const float half_width = std::sqrt(room * r.two_over_a);
+    const float centre = r.mx + r.b_over_a * dy;  // x where sigma is smallest on this row
+    const float lo = std::max(std::ceil(centre - half_width) - 1.0f, static_cast<float>(bx0));
+    const float hi = std::min(std::floor(centre + half_width) + 2.0f, static_cast<float>(bx1));
+    if (!(lo < hi)) return false;
+    x0 = static_cast<int>(lo);
+    x1 = static_cast<int>(hi);
+    return true;
+}
+
 // Shape of one Gaussian on screen: mean, conic (a, b, c) and opacity.
 struct Splat {
     float mx, my, a, b, c, o;
 };
 
-// One 16-pixel tile row of the forward pass for one Gaussian; returns how many pixels stopped here.
-// The row helpers take restrict pointers and stay out of line: that is what lets GCC vectorise them whatever
+constexpr int kLanes = 8;  // one AVX2 vector of floats; a tile row is two of them
+
+// Forward over 8 pixels of a tile row for one Gaussian: alpha test, early stop, transmittance update, and
+// acc[k * stride + lane] += weight * colour[k] for every channel. Returns how many pixels stopped here.
+// The lane helpers take restrict pointers and stay out of line: that is what lets GCC vectorise them whatever
 // the calling context.
-__attribute__((noinline)) int forward_row(const Splat& s, float dy, float x0, int32_t pos, float* __restrict done,
-                       float* __restrict T, float* __restrict weight, int32_t* __restrict last) {
-    int stopped = 0;
-#pragma omp simd reduction(+ : stopped)
-    for (int lx = 0; lx < kTile; ++lx) {
+__attribute__((noinline)) int forward_lanes(const Splat& s, float dy, float x0, int32_t pos,
+                                            const float* __restrict color, int64_t channels, int stride,
+                                            float* __restrict done, float* __restrict T, int32_t* __restrict last,
+                                            float* __restrict acc) {
+    float weight[kLanes];
+    int stopped = 0, used = 0;
+#pragma omp simd reduction(+ : stopped, used)
+    for (int lx = 0; lx < kLanes; ++lx) {
         const float dx = s.mx - (x0 + static_cast<float>(lx));
         const float sigma = 0.5f * (s.a * dx * dx + s.c * dy * dy) + s.b * dx * dy;
         const float alpha = std::min(kAlphaMax, s.o * exp_nonpositive(-sigma));
@@ -99,35 +154,57 @@ __attribute__((noinline)) int forward_row(const Splat& s, float dy, float x0, in
         const bool stop = live & (next_t <= kTransmittanceMin);
         const bool use = live & !stop;
         stopped += stop ? 1 : 0;
+        used += use ? 1 : 0;
         done[lx] = stop ? 1.0f : done[lx];
         weight[lx] = use ? alpha * T[lx] : 0.0f;
         T[lx] = use ? next_t : T[lx];
         last[lx] = use ? pos : last[lx];
     }
+    if (used == 0) return stopped;
+    for (int64_t k = 0; k < channels; ++k) {
+        const float ck = color[k];
+        float* __restrict acc_k = acc + k * stride;
+#pragma omp simd
+        for (int lx = 0; lx < kLanes; ++lx) acc_k[lx] += weight[lx] * ck;
+    }
     return stopped;
 }
 
-// acc[p] += weight[p] * value over n pixels.
-__attribute__((noinline)) void accumulate(float* __restrict acc, const float* __restrict weight, float value, int n) {
-#pragma omp simd
-    for (int p = 0; p < n; ++p) acc[p] += weight[p] * value;
-}
+struct SplatGrad {
+    float mx = 0.f, my = 0.f, a = 0.f, b = 0.f, c = 0.f, o = 0.f;
+};
 
-// Backward, first pass over one tile row: recompute alpha and the transmittance before this Gaussian, and
-// start dL/dalpha with the alpha-output term.
-__attribute__((noinline)) void backward_row_alpha(const Splat& s, float dy, float x0, int32_t pos, const int32_t* __restrict last,
-                               const float* __restrict g_a, const float* __restrict t_end, float* __restrict T,
-                               float* __restrict used, float* __restrict vis, float* __restrict t_before,
-                               float* __restrict weight, float* __restrict inv_one_minus,
-                               float* __restrict v_alpha) {
-#pragma omp simd
-    for (int lx = 0; lx < kTile; ++lx) {
+// Pixel state of one tile for the backward, channel-major arrays with `stride` floats per channel.
+struct BackwardLanes {
+    const int32_t* last;      // last contributing list position
+    const float* g_alpha;     // dL/dalpha
+    const float* t_end;       // final transmittance
+    const float* g_color;     // dL/dimage, per channel
+    float* T;                 // transmittance before the current Gaussian
+    float* remaining;         // colour still to come behind the current Gaussian (background included)
+};
+
+// Backward over 8 pixels of a tile row for one Gaussian: recompute alpha and the transmittance, update the
+// colour still to come, and accumulate dL/dcolour (v_color) and dL/d(mean, conic, opacity) (grad) by chaining
+// dL/dalpha through alpha = o exp(-sigma). The 0.999 cap has no gradient (as in gsplat).
+__attribute__((noinline)) void backward_lanes(const Splat& s, float dy, float x0, int32_t pos,
+                                              const float* __restrict color, int64_t channels, int stride,
+                                              const BackwardLanes& px, float* __restrict v_color, SplatGrad& grad) {
+    const int32_t* __restrict last = px.last;
+    const float* __restrict g_a = px.g_alpha;
+    const float* __restrict t_end = px.t_end;
+    float* __restrict T = px.T;
+    float vis[kLanes], weight[kLanes], t_before[kLanes], inv_one_minus[kLanes], v_alpha[kLanes], used[kLanes];
+    int any = 0;
+#pragma omp simd reduction(+ : any)
+    for (int lx = 0; lx < kLanes; ++lx) {
         const float dx = s.mx - (x0 + static_cast<float>(lx));
         const float sigma = 0.5f * (s.a * dx * dx + s.c * dy * dy) + s.b * dx * dy;
         const float e = exp_nonpositive(-sigma);
         const float alpha = std::min(kAlphaMax, s.o * e);
         const bool use = (pos <= last[lx]) & (sigma >= 0.0f) & (alpha >= kAlphaThreshold);
         const float inv = 1.0f / (1.0f - alpha);
+        any += use ? 1 : 0;
         used[lx] = use ? 1.0f : 0.0f;
         vis[lx] = e;
         t_before[lx] = T[lx];
@@ -136,35 +213,24 @@ __attribute__((noinline)) void backward_row_alpha(const Splat& s, float dy, floa
         v_alpha[lx] = use ? g_a[lx] * t_end[lx] * inv : 0.0f;
         T[lx] = use ? T[lx] * (1.0f - alpha) : T[lx];
     }
-}
-
-// Backward, one colour channel over n pixels: update the colour still to come (background included), add
-// this channel's share of dL/dalpha, and return dL/dcolour.
-__attribute__((noinline)) float backward_channel(float ck, int n, const float* __restrict weight, const float* __restrict g_c,
-                              const float* __restrict t_before, const float* __restrict inv_one_minus,
-                              const float* __restrict used, float* __restrict remaining, float* __restrict v_alpha) {
-    float v_color = 0.0f;
-#pragma omp simd reduction(+ : v_color)
-    for (int p = 0; p < n; ++p) {
-        remaining[p] -= weight[p] * ck;
-        const float d_alpha = g_c[p] * (ck * t_before[p] - remaining[p] * inv_one_minus[p]);
-        v_alpha[p] += used[p] != 0.0f ? d_alpha : 0.0f;
-        v_color += weight[p] * g_c[p];
+    if (any == 0) return;  // nothing drawn here: no colour to move, no gradient
+    for (int64_t k = 0; k < channels; ++k) {
+        const float ck = color[k];
+        const float* __restrict g_c = px.g_color + k * stride;
+        float* __restrict remaining = px.remaining + k * stride;
+        float vc = 0.0f;
+#pragma omp simd reduction(+ : vc)
+        for (int lx = 0; lx < kLanes; ++lx) {
+            remaining[lx] -= weight[lx] * ck;
+            const float d_alpha = g_c[lx] * (ck * t_before[lx] - remaining[lx] * inv_one_minus[lx]);
+            v_alpha[lx] += used[lx] != 0.0f ? d_alpha : 0.0f;
+            vc += weight[lx] * g_c[lx];
+        }
+        v_color[k] += vc;
     }
-    return v_color;
-}
-
-struct SplatGrad {
-    float mx = 0.f, my = 0.f, a = 0.f, b = 0.f, c = 0.f, o = 0.f;
-};
-
-// Backward, last pass over one tile row: chain dL/dalpha through alpha = o exp(-sigma) to the opacity,
-// conic and mean. The 0.999 cap has no gradient (as in gsplat).
-__attribute__((noinline)) void backward_row_shape(const Splat& s, float dy, float x0, const float* __restrict used,
-                               const float* __restrict vis, const float* __restrict v_alpha, SplatGrad& grad) {
     float v_mx = 0.f, v_my = 0.f, v_a = 0.f, v_b = 0.f, v_c = 0.f, v_o = 0.f;
 #pragma omp simd reduction(+ : v_mx, v_my, v_a, v_b, v_c, v_o)
-    for (int lx = 0; lx < kTile; ++lx) {
+    for (int lx = 0; lx < kLanes; ++lx) {
         const float dx = s.mx - (x0 + static_cast<float>(lx));
         const bool live = (used[lx] != 0.0f) & (s.o * vis[lx] <= kAlphaMax);
         const float v_sigma = live ? -s.o * vis[lx] * v_alpha[lx] : 0.0f;
@@ -230,7 +296,7 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
 
 #pragma omp parallel num_threads(num_threads)
     {
-        std::vector<float> T(P), done(P), weight(P), acc(static_cast<size_t>(D) * P);
+        std::vector<float> T(P), done(P), acc(static_cast<size_t>(D) * P);
         std::vector<int32_t> last_local(P);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t tile = 0; tile < C * tiles_per_camera; ++tile) {
@@ -252,16 +318,20 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
                 Box gb;
                 if (!gaussian_box(mx, my, radius[2 * g], radius[2 * g + 1], tb, gb)) continue;
                 const Splat sp{mx, my, conic[3 * g], conic[3 * g + 1], conic[3 * g + 2], opacity[g]};
+                const RowBound bound = row_bound(mx, sp.a, sp.b, sp.c, sp.o);
                 const int32_t pos = static_cast<int32_t>(i - start);
-                const float x0 = static_cast<float>(tb.x0);
-                for (int y = gb.y0; y < gb.y1; ++y) {
-                    const int row = (y - tb.y0) * ts;
-                    finished += forward_row(sp, my - static_cast<float>(y), x0, pos, done.data() + row, T.data() + row,
-                                            weight.data() + row, last_local.data() + row);
-                }
                 const float* cg = color + g * D;
-                const int p0 = (gb.y0 - tb.y0) * ts, n = (gb.y1 - gb.y0) * ts;
-                for (int64_t k = 0; k < D; ++k) accumulate(acc.data() + k * P + p0, weight.data() + p0, cg[k], n);
+                for (int y = gb.y0; y < gb.y1; ++y) {
+                    const float dy = my - static_cast<float>(y);
+                    int x0, x1;
+                    if (!row_span(bound, dy, gb.x0, gb.x1, x0, x1)) continue;
+                    const int row = (y - tb.y0) * ts;
+                    for (int half = (x0 - tb.x0) / kLanes; half * kLanes < x1 - tb.x0; ++half) {
+                        const int p = row + half * kLanes;
+                        finished += forward_lanes(sp, dy, static_cast<float>(tb.x0 + half * kLanes), pos, cg, D, P,
+                                                  done.data() + p, T.data() + p, last_local.data() + p, acc.data() + p);
+                    }
+                }
             }
             const float* bgc = bg + cam * D;
             for (int y = tb.y0; y < tb.y1; ++y) {
@@ -295,7 +365,7 @@ torch::Tensor composite_backward(torch::Tensor means2d, torch::Tensor conics, to
     const int64_t tiles_x = (width + tile_size - 1) / tile_size, tiles_y = (height + tile_size - 1) / tile_size;
     const Frame f{C, width, height, tile_size, tiles_x, tiles_y, D};
     const int64_t row_len = 6 + D, n_isect = flatten_ids.size(0);
-    auto per_isect = torch::zeros({n_isect, row_len}, colors.options());
+    auto per_isect = torch::empty({n_isect, row_len}, colors.options());  // every row is written below
 
     const float* mean = means2d.data_ptr<float>();
     const float* conic = conics.data_ptr<float>();
@@ -316,18 +386,21 @@ torch::Tensor composite_backward(torch::Tensor means2d, torch::Tensor conics, to
 #pragma omp parallel num_threads(num_threads)
     {
         std::vector<float> T(P), t_end(P), g_a(P), remaining(static_cast<size_t>(D) * P),
-            g_c(static_cast<size_t>(D) * P), weight(P), t_before(P), inv_one_minus(P), v_alpha(P), used(P), vis(P);
+            g_c(static_cast<size_t>(D) * P);
         std::vector<int32_t> last_local(P);
         std::vector<float> v_color(D);
+        const BackwardLanes tile_px{last_local.data(), g_a.data(), t_end.data(), g_c.data(), T.data(),
+                                    remaining.data()};
 #pragma omp for schedule(dynamic, 1)
         for (int64_t tile = 0; tile < C * tiles_per_camera; ++tile) {
             const int64_t cam = tile / tiles_per_camera;
             const Box tb = tile_box(f, tile % tiles_per_camera);
             const int64_t start = offsets[tile], end = offsets[tile + 1];
             if (start == end) continue;
+            std::fill(rows + start * row_len, rows + end * row_len, 0.0f);  // pairs that draw nothing
             std::fill(last_local.begin(), last_local.end(), -1);
             std::fill(T.begin(), T.end(), 1.0f);
-            // lanes beyond the image take part in the SIMD rows: give them finite, inert values
+            // lanes beyond the image take part in the SIMD vectors: give them finite, inert values
             std::fill(remaining.begin(), remaining.end(), 0.0f);
             std::fill(g_c.begin(), g_c.end(), 0.0f);
             std::fill(g_a.begin(), g_a.end(), 0.0f);
@@ -353,27 +426,23 @@ torch::Tensor composite_backward(torch::Tensor means2d, torch::Tensor conics, to
                 Box gb;
                 if (!gaussian_box(mx, my, radius[2 * g], radius[2 * g + 1], tb, gb)) continue;
                 const Splat sp{mx, my, conic[3 * g], conic[3 * g + 1], conic[3 * g + 2], opacity[g]};
+                const RowBound bound = row_bound(mx, sp.a, sp.b, sp.c, sp.o);
                 const int32_t pos = static_cast<int32_t>(i - start);
-                const float x0 = static_cast<float>(tb.x0);
-                for (int y = gb.y0; y < gb.y1; ++y) {
-                    const int r = (y - tb.y0) * ts;
-                    backward_row_alpha(sp, my - static_cast<float>(y), x0, pos, last_local.data() + r, g_a.data() + r,
-                                       t_end.data() + r, T.data() + r, used.data() + r, vis.data() + r,
-                                       t_before.data() + r, weight.data() + r, inv_one_minus.data() + r,
-                                       v_alpha.data() + r);
-                }
                 const float* cg = color + g * D;
-                const int p0 = (gb.y0 - tb.y0) * ts, n = (gb.y1 - gb.y0) * ts;
-                for (int64_t k = 0; k < D; ++k) {
-                    v_color[k] = backward_channel(cg[k], n, weight.data() + p0, g_c.data() + k * P + p0,
-                                                  t_before.data() + p0, inv_one_minus.data() + p0, used.data() + p0,
-                                                  remaining.data() + k * P + p0, v_alpha.data() + p0);
-                }
+                std::fill(v_color.begin(), v_color.end(), 0.0f);
                 SplatGrad sg;
                 for (int y = gb.y0; y < gb.y1; ++y) {
-                    const int r = (y - tb.y0) * ts;
-                    backward_row_shape(sp, my - static_cast<float>(y), x0, used.data() + r, vis.data() + r,
-                                       v_alpha.data() + r, sg);
+                    const float dy = my - static_cast<float>(y);
+                    int x0, x1;
+                    if (!row_span(bound, dy, gb.x0, gb.x1, x0, x1)) continue;
+                    const int row = (y - tb.y0) * ts;
+                    for (int half = (x0 - tb.x0) / kLanes; half * kLanes < x1 - tb.x0; ++half) {
+                        const int p = row + half * kLanes;
+                        const BackwardLanes lanes{tile_px.last + p, tile_px.g_alpha + p, tile_px.t_end + p,
+                                                  tile_px.g_color + p, tile_px.T + p, tile_px.remaining + p};
+                        backward_lanes(sp, dy, static_cast<float>(tb.x0 + half * kLanes), pos, cg, D, P, lanes,
+                                       v_color.data(), sg);
+                    }
                 }
                 float* out_row = rows + i * row_len;
                 out_row[0] = sg.mx;
@@ -386,18 +455,44 @@ torch::Tensor composite_backward(torch::Tensor means2d, torch::Tensor conics, to
             }
         }
     }
-    // Sum the per-intersection rows per Gaussian (serial: deterministic, and cheap next to the tiles).
+    // Sum the per-intersection rows per Gaussian: each thread owns a contiguous range of Gaussians and adds
+    // their rows in list order, so every sum has the same order whatever the thread count.
     auto grads = torch::zeros({M, row_len}, colors.options());
     float* gout = grads.data_ptr<float>();
-    for (int64_t i = 0; i < n_isect; ++i) {
-        float* dst = gout + ids[i] * row_len;
-        const float* src = rows + i * row_len;
-        for (int64_t k = 0; k < row_len; ++k) dst[k] += src[k];
+#pragma omp parallel num_threads(num_threads)
+    {
+        const int64_t parts = omp_get_num_threads(), part = omp_get_thread_num();
+        const int64_t first = M * part / parts, stop = M * (part + 1) / parts;
+        for (int64_t i = 0; i < n_isect; ++i) {
+            const int64_t g = ids[i];
+            if (g < first || g >= stop) continue;
+            float* dst = gout + g * row_len;
+            const float* src = rows + i * row_len;
+            for (int64_t k = 0; k < row_len; ++k) dst[k] += src[k];
+        }
     }
     return grads;
 }
 
+// bin_tiles.cpp
+std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor radii, torch::Tensor depths, int64_t width,
+                                     int64_t height, int64_t tile_size, int64_t num_threads);
+
+// project_gaussians.cpp
+std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
+                                           torch::Tensor opacities, torch::Tensor w2c, torch::Tensor K,
+                                           int64_t width, int64_t height, double eps2d, double near, double far,
+                                           bool antialiased, int64_t num_threads);
+std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
+                                            torch::Tensor opacities, torch::Tensor w2c, torch::Tensor K,
+                                            torch::Tensor v_means2d, torch::Tensor v_conics, torch::Tensor v_depths,
+                                            torch::Tensor v_opacities, int64_t width, int64_t height, double eps2d,
+                                            double near, double far, bool antialiased, int64_t num_threads);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+    m.def("project_forward", &project_forward, "EWA projection of 3D Gaussians, forward (CPU, OpenMP)");
+    m.def("project_backward", &project_backward, "EWA projection, gradients of the Gaussian parameters (CPU)");
     m.def("composite_forward", &composite_forward, "Gaussian tile compositing, forward (CPU, OpenMP)");
     m.def("composite_backward", &composite_backward, "Gaussian tile compositing, exact backward (CPU, OpenMP)");
+    m.def("bin_tiles", &bin_tiles, "Gaussian-tile intersections sorted by camera, tile and depth (CPU)");
 }
