@@ -90,15 +90,18 @@ class TexelBinding:
 
 def texel_positions(vertices: torch.Tensor, binding: TexelBinding) -> torch.Tensor:
     """Barycentric surface point of every valid texel: vertices (B, V, 3) -> (B, N, 3)."""
-    corners = binding.faces[binding.texel_faces]  # (N, 3) vertex ids
+    device = vertices.device  # the binding may live on the CPU while the decoders run on a GPU
+    corners = binding.faces.to(device)[binding.texel_faces.to(device)]  # (N, 3) vertex ids
     triangle_points = vertices[:, corners]  # (B, N, 3 corners, 3 xyz)
-    return (triangle_points * binding.texel_barycentrics[None, :, :, None]).sum(dim=2)
+    barycentrics = binding.texel_barycentrics.to(vertices)
+    return (triangle_points * barycentrics[None, :, :, None]).sum(dim=2)
 
 
 def gather_texels(uv_maps: torch.Tensor, binding: TexelBinding) -> torch.Tensor:
     """Values at the valid texels: uv_maps (B, C, S, S) -> (B, N, C)."""
     batch, channels = uv_maps.shape[:2]
-    return uv_maps.reshape(batch, channels, -1)[:, :, binding.valid_index].transpose(1, 2)
+    valid_index = binding.valid_index.to(uv_maps.device)
+    return uv_maps.reshape(batch, channels, -1)[:, :, valid_index].transpose(1, 2)
 
 
 def texel_spacing(vertices: torch.Tensor, faces: torch.Tensor, valid_texels: int) -> float:
