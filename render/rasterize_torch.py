@@ -164,7 +164,12 @@ def project_gaussians(
     )
     opacities_cam = opacities[None, :].expand(z.shape)
     if mode == "antialiased":
-        compensation = torch.sqrt(torch.clamp(det_unblurred / det_safe, min=0.0))
+        ratio = det_unblurred / det_safe
+        # sqrt has an infinite slope at 0 (zero-scale Gaussians): take it only where the ratio is positive.
+        positive = ratio > 0
+        compensation = torch.where(
+            positive, torch.sqrt(torch.where(positive, ratio, torch.ones_like(ratio))), 0.0
+        )
         opacities_cam = opacities_cam * compensation
     elif mode != "classic":
         raise ValueError(f"rasterize mode must be 'classic' or 'antialiased', got {mode!r}")

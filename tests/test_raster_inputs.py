@@ -105,3 +105,26 @@ def test_build_cache_name_tracks_source_and_torch():
     name = rasterize_cpp.extension_name()
     assert name.startswith("relightanyone_raster_") and len(name) == len("relightanyone_raster_") + 16
     assert name == rasterize_cpp.extension_name()
+
+
+def test_antialiased_zero_scale_gaussian_has_finite_gradients_on_the_torch_path():
+    """The antialiasing compensation is sqrt(det ratio); at a zero-scale Gaussian the ratio is 0 and a
+    plain sqrt would send an infinite slope (NaN) into every gradient."""
+    generator = torch.Generator().manual_seed(0)
+    count = 5
+    means = torch.randn(count, 3, dtype=torch.float64, generator=generator) * 0.05
+    means[:, 2] += 1.0
+    quats = torch.randn(count, 4, dtype=torch.float64, generator=generator)
+    scales = torch.full((count, 3), 0.02, dtype=torch.float64)
+    scales[0] = 0.0
+    opacities = torch.full((count,), 0.8, dtype=torch.float64)
+    features = torch.rand(count, 3, dtype=torch.float64, generator=generator)
+    inputs = (means, quats, scales, opacities, features)
+    for tensor in inputs:
+        tensor.requires_grad_(True)
+    w2c = torch.eye(4, dtype=torch.float64)[None]
+    K = torch.tensor([[[60.0, 0.0, 16.0], [0.0, 60.0, 16.0], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+    image, _, _ = rasterize(*inputs, w2c, K, 32, 32, mode="antialiased", backend="torch")
+    image.sum().backward()
+    assert all(torch.isfinite(tensor.grad).all() for tensor in inputs)
+    assert image.abs().sum() > 0
