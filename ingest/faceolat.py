@@ -346,7 +346,8 @@ def _plan_subject(
     found: dict,
 ) -> SubjectPlan:
     """Views and refusals of one subject (all its captures)."""
-    from relightanyone.render.calibration_io import CalibrationError, read_metashape_xml
+    from relightanyone.render.calibration_io import CalibrationError
+    from relightanyone.render.metashape_io import read_metashape_xml
 
     plan = SubjectPlan(subject=subject, split=options.split_of(subject), views=[])
     xml = f"{CAMERAS_DIR}/{subject}.xml"

@@ -16,9 +16,9 @@ from relightanyone.render.calibration_io import (
     from_transforms_json,
     read_krt_json,
     read_krt_text,
-    read_metashape_xml,
 )
 from relightanyone.render.camera import Cameras
+from relightanyone.render.metashape_io import read_metashape_xml
 
 ROT = cv2.Rodrigues(np.array([0.2, -0.4, 0.1]))[0]
 T_M = np.array([0.05, -0.1, 1.2])  # metres
