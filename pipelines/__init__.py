@@ -1,1 +1,1 @@
-"""Pipelines: staged DAG runner, OLAT expansion, relight/export and the report."""
+"""Pipelines: the staged DAG runner (`relightanyone run`) and dataset export (`export-dataset`)."""
