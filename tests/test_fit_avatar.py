@@ -20,12 +20,11 @@ from relightanyone.model.fit import (
     Fitter,
     decode_codes,
     fit_subject,
-    load_fit_views,
     load_relightable_model,
     locality_codes,
     locality_loss,
-    scale_intrinsics,
 )
+from relightanyone.model.fit_views import load_fit_views, scale_intrinsics
 from relightanyone.model.presets import get_stage2_preset
 from relightanyone.model.stage1 import Stage1Config, train_stage1
 from relightanyone.model.stage2_train import Stage2Config, train_stage2
