@@ -8,15 +8,14 @@ from __future__ import annotations
 
 import dataclasses
 
-import cv2
 import numpy as np
 import pytest
 from relightanyone.align.geometry import transform_points
 from relightanyone.ingest import ava256, faceolat
 from relightanyone.ingest.records import AdapterOptions, DatasetPlan
 from relightanyone.synth.presets import PRESETS, DatasetSize
-from relightanyone.synth.truth import DatasetTruth
 from relightanyone.synth.world import generate_world
+from synth_judge import project, subject_vertices, truth_of
 
 SMALL = dataclasses.replace(
     PRESETS["tiny"],
@@ -34,25 +33,6 @@ def world(tmp_path_factory):
     out = tmp_path_factory.mktemp("world_d1d2") / "world"
     generate_world(out, SMALL, seed=3, datasets=("d1", "d2"), progress=False)
     return out
-
-
-def truth_of(world, dataset: str) -> DatasetTruth:
-    return DatasetTruth.load(world / "answers" / dataset / "truth.json")
-
-
-def subject_vertices(world, dataset: str, subject: str) -> np.ndarray:
-    """(V, 3) canonical vertices of a subject's true shape (answers/<d>/subjects/<s>/shape.obj)."""
-    lines = (world / "answers" / dataset / "subjects" / subject / "shape.obj").read_text().splitlines()
-    return np.array([[float(v) for v in line.split()[1:4]] for line in lines if line.startswith("v ")])
-
-
-def project(K: np.ndarray, w2c: np.ndarray, dist: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(N, 2) OpenCV projection of (N, 3) world points."""
-    rvec, _ = cv2.Rodrigues(np.ascontiguousarray(w2c[:3, :3]))
-    pixels, _ = cv2.projectPoints(
-        points.reshape(-1, 1, 3), rvec, w2c[:3, 3].copy(), K, np.asarray(dist, dtype=np.float64)
-    )
-    return pixels.reshape(-1, 2)
 
 
 @pytest.fixture(scope="module")

@@ -23,6 +23,7 @@ from relightanyone.synth.d3_stereo_rig import decode_dng
 from relightanyone.synth.presets import PRESETS, DatasetSize
 from relightanyone.synth.truth import DatasetTruth
 from relightanyone.synth.world import generate_world
+from synth_judge import project, subject_vertices
 
 from relightanyone.format.reader import NormalizedDataset
 
@@ -57,19 +58,6 @@ def ingest(world, plan, dataset: str, out):
     )
 
 
-def true_vertices(world, dataset: str, subject: str) -> np.ndarray:
-    lines = (world / "answers" / dataset / "subjects" / subject / "shape.obj").read_text().splitlines()
-    return np.array([[float(v) for v in line.split()[1:4]] for line in lines if line.startswith("v ")])
-
-
-def project(K, w2c, dist, points) -> np.ndarray:
-    rvec, _ = cv2.Rodrigues(np.ascontiguousarray(w2c[:3, :3]))
-    pixels, _ = cv2.projectPoints(
-        points.reshape(-1, 1, 3), rvec, w2c[:3, 3].copy(), K, np.asarray(dist, float)
-    )
-    return pixels.reshape(-1, 2)
-
-
 def sample(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     """(N, C) bilinear samples of ``image (H, W, C)`` at ``pixels (N, 2)`` (pixel centres at integers)."""
     grid = pixels.astype(np.float32).reshape(-1, 1, 2)
@@ -81,7 +69,7 @@ def sample(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
 
 def surface_colours(world, dataset: str, truth: DatasetTruth, row, image, mask, native_linear):
     """Ingested and true linear RGB ``(N, 3)`` each, at the subject's vertices well inside the row's mask."""
-    vertices = true_vertices(world, dataset, row.subject)
+    vertices = subject_vertices(world, dataset, row.subject)
     stored = project(row.K, row.w2c, np.zeros(5), vertices)
     camera = truth.cameras[row.camera]
     posed = transform_points(truth.head_poses[(row.subject, row.frame)], vertices)
@@ -97,7 +85,7 @@ def surface_colours(world, dataset: str, truth: DatasetTruth, row, image, mask, 
 def geometry_error_px(world, dataset: str, truth: DatasetTruth, row) -> float:
     """Largest distance (stored pixels) between the true vertices projected with the row's canonical camera
     and where the renderer drew them, carried through the row's undistort + crop + resize."""
-    vertices = true_vertices(world, dataset, row.subject)
+    vertices = subject_vertices(world, dataset, row.subject)
     got = project(row.K, row.w2c, np.zeros(5), vertices)
     camera = truth.cameras[row.camera]
     posed = transform_points(truth.head_poses[(row.subject, row.frame)], vertices)
