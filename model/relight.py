@@ -83,7 +83,11 @@ class RelightParams:
 
 
 def activate_relight_params(
-    view_independent: torch.Tensor, view_dependent: torch.Tensor, mesh_normals: torch.Tensor, sh_order: int
+    view_independent: torch.Tensor,
+    view_dependent: torch.Tensor,
+    mesh_normals: torch.Tensor,
+    sh_order: int,
+    albedo_scale: torch.Tensor | None = None,
 ) -> RelightParams:
     """Raw per-Gaussian decoder outputs to :class:`RelightParams`.
 
@@ -92,6 +96,8 @@ def activate_relight_params(
         view_dependent: (B, N, 4) raw visibility and normal residual.
         mesh_normals: (B, N, 3) unit normals n̂ of the mesh at each Gaussian.
         sh_order: n, with K = (n + 1)².
+        albedo_scale: (3,) the radiometric unit of the albedo (image units per rig-light unit), so the raw
+            output stays near 1 whatever the dataset's light calibration is; ones when None.
     """
     count = sh_count(sh_order)
     expected = view_independent_channels(sh_order)
@@ -105,7 +111,7 @@ def activate_relight_params(
     prior = lambertian_transfer(mesh_normals, sh_order)[:, :, None, :]
     normal_residual = view_dependent[..., 1:4]
     return RelightParams(
-        albedo=F.softplus(view_independent[..., 0:3]),
+        albedo=F.softplus(view_independent[..., 0:3]) * (1.0 if albedo_scale is None else albedo_scale),
         transfer=prior + residual,
         roughness=rgca_roughness(view_independent[..., -1]),
         visibility=torch.sigmoid(view_dependent[..., 0]),
@@ -224,8 +230,16 @@ def normal_residual_loss(normal_residual: torch.Tensor) -> torch.Tensor:
     return (normal_residual**2).sum(-1).mean(-1)
 
 
-def albedo_prior_loss(albedo: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
-    """λ_ρ term: mean squared distance of the albedo from its prior; albedo (B, N, 3), prior (N, 3) -> (B,)."""
+def albedo_prior_loss(
+    albedo: torch.Tensor, prior: torch.Tensor, unit: torch.Tensor | None = None
+) -> torch.Tensor:
+    """λ_ρ term: mean squared distance of the albedo from its prior, both in ``unit`` (3,) when given.
+
+    albedo (B, N, 3), prior (N, 3) -> (B,). Measuring in the albedo's unit keeps the term's size independent
+    of the dataset's light calibration.
+    """
+    if unit is not None:
+        albedo, prior = albedo / unit, prior / unit
     return ((albedo - prior) ** 2).mean(dim=(1, 2))
 
 

@@ -69,6 +69,7 @@ class SingleStageModel(nn.Module):
         self.spacing = texel_spacing(template_vertices, binding.faces, binding.count)
         centre, _ = head_frame(template_vertices)
         self.register_buffer("head_centre", centre)
+        self.register_buffer("albedo_scale", torch.ones(3))  # see Stage2Model: set by the trainer
         self.identity_codes = nn.Parameter(torch.randn(subject_count, preset.z_id_dim) * CODE_INIT_STD)
         self.mesh_decoder = MeshDecoder(preset.z_id_dim, template_vertices, preset.mesh_hidden)
         sizes = (preset.uv_size, preset.start_channels, preset.min_channels)
@@ -115,7 +116,8 @@ class SingleStageModel(nn.Module):
             gather_texels(view_maps, self.binding),
             texel_mesh_normals(vertices, self.binding),
             self.sh_order,
+            self.albedo_scale,
         )
-        albedo_maps = torch.nn.functional.softplus(reflectance_maps[:, 0:3])
+        albedo_maps = torch.nn.functional.softplus(reflectance_maps[:, 0:3]) * self.albedo_scale[:, None, None]
         gaussians = assemble_gaussians(geometry_maps, albedo_maps, vertices, self.binding, self.spacing)
         return vertices, gaussians, params

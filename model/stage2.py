@@ -197,6 +197,8 @@ class Stage2Model(nn.Module):
         self.sh_order = sh_order
         self.radius = float(radius)
         self.register_buffer("head_centre", torch.as_tensor(head_centre, dtype=torch.float32).clone())
+        # Image units per unit of albedo x rig light: set by the trainer from the data, saved with the weights.
+        self.register_buffer("albedo_scale", torch.ones(3))
         self.unet = RelightingUNet(binding.uv_size, sh_order, base_channels, max_channels)
 
     def input_maps(self, colours: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
@@ -227,4 +229,5 @@ class Stage2Model(nn.Module):
             gather_texels(view_dependent, self.binding),
             mesh_normals,
             self.sh_order,
+            self.albedo_scale,
         )

@@ -271,6 +271,7 @@ class Stage2Trainer:
             self.preset.max_channels,
         ).to(self.device)
         self.albedo_prior = self._albedo_prior()
+        self.trainable.albedo_scale.copy_(self.albedo_prior.mean(dim=0).clamp(min=1e-6))
 
     def _build_single_stage(self) -> None:
         from relightanyone.render.mesh import load_obj
@@ -298,19 +299,14 @@ class Stage2Trainer:
             len(self.frames.subjects),
         ).to(self.device)
         self.albedo_prior = None
+        self.trainable.albedo_scale.copy_(self._albedo_scale_from_images())
 
-    @torch.no_grad()
-    def _albedo_prior(self) -> torch.Tensor:
-        """(N, 3) mean full-on texture of the OLAT subjects over the rig's mean diffuse factor Σ d_lambert L."""
+    def _diffuse_factor(self, vertices: torch.Tensor, binding) -> torch.Tensor:
+        """(3,) mean over Gaussians of Σ_l d_lambert · L_l: the rig's diffuse light on a unit albedo."""
         from relightanyone.render.sh import lambertian_transfer
         from relightanyone.render.shading import point_light_sh
 
-        subjects = sorted({v.subject_index for v in self.frames.full_on + self.frames.olat})
-        index = torch.tensor(subjects, device=self.device)
-        vertices, gaussians = self.stage1(index, torch.full_like(index, self.lighting_index))
-        transfer = lambertian_transfer(
-            texel_mesh_normals(vertices, self.stage1.binding), self.preset.sh_order
-        )
+        transfer = lambertian_transfer(texel_mesh_normals(vertices, binding), self.preset.sh_order)
         rig = self.frames.rig.to(self.device)
         light_sh = point_light_sh(
             rig.positions[None],
@@ -320,7 +316,33 @@ class Stage2Trainer:
             self.preset.inverse_square,
         )
         factor = torch.einsum("bnk,ck->bnc", transfer, light_sh[0]).clamp(min=0.0).mean(dim=(0, 1))
-        return gaussians.colours.mean(dim=0) / factor.clamp(min=1e-8)
+        return factor.clamp(min=1e-12)
+
+    @torch.no_grad()
+    def _albedo_prior(self) -> torch.Tensor:
+        """(N, 3) mean full-on texture of the OLAT subjects over the rig's mean diffuse factor Σ d_lambert L."""
+        subjects = sorted({v.subject_index for v in self.frames.full_on + self.frames.olat})
+        index = torch.tensor(subjects, device=self.device)
+        vertices, gaussians = self.stage1(index, torch.full_like(index, self.lighting_index))
+        return gaussians.colours.mean(dim=0) / self._diffuse_factor(vertices, self.stage1.binding)
+
+    @torch.no_grad()
+    def _albedo_scale_from_images(self, views: int = 16) -> torch.Tensor:
+        """(3,) mean masked full-on pixel over the diffuse factor of the template: the single-stage albedo unit."""
+        chosen = (self.frames.full_on or self.frames.olat)[:views]
+        totals, count = np.zeros(3), 0.0
+        for view in chosen:
+            _, image, mask = self.frames.dataset.decoded(view.key)
+            if self.frames.colour_matrix is not None:
+                image = image @ self.frames.colour_matrix.T.astype(np.float32)
+            totals += image[mask > 0].sum(axis=0)
+            count += float((mask > 0).sum())
+        mean_colour = torch.tensor(totals / max(count, 1.0), dtype=torch.float32, device=self.device)
+        template = self.trainable.mesh_decoder.template_vertices[None].to(self.device)
+        factor = self._diffuse_factor(template, self.trainable.binding)
+        if len(self.frames.full_on) == 0:
+            factor = factor / max(len(self.frames.rig), 1)  # OLAT frames see one light of the rig
+        return (mean_colour / factor).clamp(min=1e-6)
 
     def batch(self, iteration: int) -> dict[str, torch.Tensor]:
         views = self.frames.draw(
@@ -390,7 +412,7 @@ class Stage2Trainer:
             albedo_lambda = annealed_weight(
                 iteration, weights.albedo_start, weights.albedo_end, self.preset.albedo_anneal_iterations
             )
-            terms["albedo"] = albedo_prior_loss(params.albedo, self.albedo_prior)
+            terms["albedo"] = albedo_prior_loss(params.albedo, self.albedo_prior, self.trainable.albedo_scale)
             per_sample = per_sample + albedo_lambda * terms["albedo"]
             logged["albedo_lambda"] = albedo_lambda
         if self.config.single_stage:

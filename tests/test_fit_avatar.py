@@ -8,7 +8,6 @@ other RGB intensities per light.
 
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -25,122 +24,9 @@ from relightanyone.model.fit import (
     locality_loss,
 )
 from relightanyone.model.fit_views import load_fit_views, scale_intrinsics
-from relightanyone.model.presets import get_stage2_preset
-from relightanyone.model.stage1 import Stage1Config, train_stage1
-from relightanyone.model.stage2_train import Stage2Config, train_stage2
 from relightanyone.render.camera import Cameras
 from relightanyone.render.lights import PointLights
-from stage1_world import RADIUS, sphere_obj, tiny_stage1_preset
-
-from relightanyone.format.codecs import encode_image, encode_mask
-from relightanyone.format.examples import look_at_w2c
-from relightanyone.format.schema import (
-    DatasetInfo,
-    LightRow,
-    MeshRow,
-    Provenance,
-    build_image_row,
-    fingerprint_config,
-)
-from relightanyone.format.shards import ShardWriter
-
-SIZE = 24
-LIGHTS = np.array([[0.8, 0.4, 0.6], [-0.8, 0.3, 0.6], [0.0, 0.9, 0.5], [0.0, -0.5, 0.9]])
-RIG_INTENSITY = 2.5
-# The unseen subject's lighting: the rig's lights with other RGB intensities (light 1 nearly off).
-SCENE_INTENSITIES = np.array([[4.0, 3.0, 2.0], [0.2, 0.2, 0.3], [2.0, 2.5, 3.0], [1.0, 1.0, 1.0]])
-SUBJECTS = {
-    "s00": (1.0, (0.7, 0.5, 0.4), "train"),
-    "s01": (1.0, (0.4, 0.6, 0.8), "train"),
-    "s02": (1.15, (0.8, 0.45, 0.3), "test"),
-}
-
-
-def _lambert_sphere(scale, albedo, K, w2c, positions, intensities):
-    """Ray-cast the sphere of radius RADIUS·scale at the origin under point lights: (image (H, W, 3), mask)."""
-    c2w = np.linalg.inv(w2c)
-    y, x = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
-    rays = np.stack([(x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1], np.ones_like(x)], -1) @ c2w[:3, :3].T
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-    origin = c2w[:3, 3]
-    b = rays @ origin
-    disc = b**2 - (origin @ origin - (RADIUS * scale) ** 2)
-    mask = disc > 0
-    points = origin + (-b - np.sqrt(np.clip(disc, 0, None)))[..., None] * rays
-    normals = points / (RADIUS * scale)
-    radiance = np.zeros((*mask.shape, 3))
-    for position, intensity in zip(positions, intensities, strict=True):
-        offset = position - points
-        cosine = np.clip((normals * offset).sum(-1), 0, None) / (offset**2).sum(-1) ** 1.5
-        radiance += np.asarray(intensity) * cosine[..., None]
-    image = np.where(mask[..., None], np.asarray(albedo) / np.pi * radiance, 0.0).astype(np.float32)
-    return image, mask
-
-
-def _write_world(root: Path) -> Path:
-    vertices, obj_text = sphere_obj()
-    folder = root / "olat"
-    info = DatasetInfo(
-        name="olat",
-        kind="olat",
-        template_mesh_id="sphere",
-        lighting="4-light OLAT rig + full-on",
-        provenance=Provenance(source_dataset="fit test sphere world", licence="CC0"),
-        config_fingerprint=fingerprint_config({"name": "fit-world"}),
-    )
-    writer = ShardWriter(folder, info)
-    writer.begin()
-    writer.write_lights(
-        [
-            LightRow(
-                index=k,
-                name=f"L{k}",
-                position_m=tuple(p),
-                intensity_rgb=(RIG_INTENSITY,) * 3,
-                pattern=f"olat-{k:03d}",
-            )
-            for k, p in enumerate(LIGHTS)
-        ]
-    )
-    K = np.array([[2.2 * SIZE, 0, (SIZE - 1) / 2], [0, 2.2 * SIZE, (SIZE - 1) / 2], [0, 0, 1.0]])
-    rig = np.full((4, 3), RIG_INTENSITY)
-    for subject, (scale, albedo, split) in SUBJECTS.items():
-        with writer.part(subject) as part:
-            part.add_mesh(MeshRow(subject=subject, frame=0, vertices=(vertices * scale).astype(np.float32)))
-            for c in range(4):
-                angle = 0.5 * (c - 1.5)
-                w2c = look_at_w2c(0.5 * np.array([np.sin(angle), 0.1, np.cos(angle)]))
-                if split == "train":
-                    patterns = {"full": (LIGHTS, rig)} | {
-                        f"olat-{k:03d}": (LIGHTS[k : k + 1], rig[k : k + 1]) for k in range(4)
-                    }
-                else:
-                    patterns = {"full": (LIGHTS, SCENE_INTENSITIES)}
-                for pattern, (positions, intensities) in patterns.items():
-                    image, mask = _lambert_sphere(scale, albedo, K, w2c, positions, intensities)
-                    source = f"{subject}/{pattern}/cam{c:02d}.exr"
-                    part.add(
-                        build_image_row(
-                            dataset="olat",
-                            subject=subject,
-                            frame=0,
-                            camera=f"cam{c:02d}",
-                            pattern=pattern,
-                            split=split,
-                            K=K,
-                            w2c=w2c,
-                            image=encode_image(image),
-                            image_encoding="raw-f16",
-                            mask=encode_mask(mask),
-                            width=SIZE,
-                            height=SIZE,
-                            source=source,
-                            source_sha256=hashlib.sha256(source.encode()).hexdigest(),
-                        )
-                    )
-    writer.commit()
-    (folder / "template.obj").write_text(obj_text)
-    return folder
+from sphere_world import LIGHTS, RIG_INTENSITY, SIZE, build_sphere_world
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -154,35 +40,8 @@ def one_thread():
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory) -> dict[str, Path]:
-    """The dataset, a stage-1 run on its training subjects and a stage-2 run on top."""
-    root = tmp_path_factory.mktemp("fit-world")
-    data = _write_world(root)
-    stage1 = root / "stage1"
-    train_stage1(
-        Stage1Config(
-            [data],
-            stage1,
-            tiny_stage1_preset(iterations=6, crop_size=SIZE, held_out_cameras=0),
-            progress=False,
-            evaluate=False,
-        )
-    )
-    stage2_preset = get_stage2_preset("tiny").replace(
-        sh_order=2,
-        base_channels=8,
-        max_channels=16,
-        crop_size=SIZE,
-        batch_size=2,
-        iterations=4,
-        normal_anneal_iterations=2,
-        albedo_anneal_iterations=2,
-        checkpoint_every=4,
-        log_every=2,
-        learning_rate=5e-3,
-    )
-    stage2 = root / "stage2"
-    train_stage2(Stage2Config(data, stage2, stage2_preset, stage1_run=stage1, progress=False))
-    return {"data": data, "stage1": stage1, "stage2": stage2, "root": root}
+    """The OLAT dataset, a stage-1 run on its training subjects and a stage-2 run on top."""
+    return build_sphere_world(tmp_path_factory.mktemp("fit-world"))
 
 
 def _fitter(world, **settings) -> Fitter:
