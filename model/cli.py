@@ -140,6 +140,90 @@ def train_stage1_command(
             )
 
 
+@click.command("align-colour")
+@click.option(
+    "--data",
+    "data",
+    multiple=True,
+    required=True,
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    help="Normalized dataset folder (repeat for each dataset stage 1 will train on).",
+)
+@click.option(
+    "--uncalibrated",
+    multiple=True,
+    required=True,
+    metavar="NAME",
+    help="Dataset without colour calibration (repeatable): its 3x3 colour matrix is learned.",
+)
+@click.option("--preset", type=click.Choice(PRESET_NAMES), default="tiny", show_default=True)
+@click.option("--warmup-iterations", type=int, default=None, help="Override the preset's warm-up length.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option(
+    "--eval-views", type=int, default=None, help="Held-out views per dataset to score (default: all)."
+)
+@click.option("--threads", type=int, default=None, help="CPU threads for torch (default: torch's choice).")
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Folder for the warm-up run and one dataset view per --data.",
+)
+def align_colour_command(
+    data, uncalibrated, preset, warmup_iterations, seed, eval_views, threads, out
+) -> None:
+    """Learn the colour matrix of uncalibrated datasets (warm-up without lighting codes, paper 4.1).
+
+    Writes OUT/warmup/ (the warm-up run), OUT/<dataset>/ for every --data: a view of the dataset (links to
+    its files; the source is not modified) carrying colour_alignment.json for the uncalibrated ones, and
+    OUT/colour_alignment.json (matrices and held-out PSNR/SSIM without and with them). Train stage 1 on the
+    views: relightanyone train stage1 --data OUT/<dataset> ... --no-colour-warmup
+
+    Example: relightanyone align-colour --data out/d1 --data out/ava256 --uncalibrated ava256 --out aligned
+    """
+    import torch
+    from relightanyone.model.colour_align import run_colour_warmup
+    from relightanyone.model.presets import get_preset
+
+    from relightanyone.format.dataset_view import link_dataset_view
+    from relightanyone.format.reader import load_manifest
+
+    if threads is not None:
+        torch.set_num_threads(threads)
+    chosen = get_preset(preset)
+    if warmup_iterations is not None:
+        chosen = chosen.replace(warmup_iterations=warmup_iterations)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        names = {load_manifest(Path(d)).info.name: Path(d) for d in data}
+        unknown = sorted(set(uncalibrated) - set(names))
+        if unknown:
+            raise ValueError(f"--uncalibrated {unknown} is not among the --data datasets {sorted(names)}")
+        metrics = run_colour_warmup(
+            list(data),
+            out,
+            chosen,
+            tuple(uncalibrated),
+            seed,
+            eval_views_per_dataset=eval_views,
+            views_dir=out,
+        )
+        for name, folder in names.items():
+            if name not in uncalibrated:
+                link_dataset_view(folder, out / name)
+    except (ValueError, FileNotFoundError) as error:
+        raise click.ClickException(str(error)) from error
+    report = {
+        "uncalibrated": sorted(uncalibrated),
+        "datasets": {name: str(folder) for name, folder in names.items()},
+        **{k: v for k, v in metrics.items() if k != "losses"},
+    }
+    (out / "colour_alignment.json").write_text(json.dumps(report, indent=2, sort_keys=True) + "\n")
+    click.echo("colour matrices (render -> dataset): " + json.dumps(metrics.get("colour_matrices", {})))
+    click.echo(f"dataset views for stage 1: {', '.join(str(out / n) for n in names)}")
+
+
 @click.group("render")
 def render_group() -> None:
     """Render trained models."""
@@ -191,7 +275,11 @@ def render_stage1_command(run, subject, lighting_code, cameras, orbit_count, lig
     click.echo(f"wrote {out}")
 
 
-COMMANDS: dict[str, click.Command] = {"train": train_group, "render": render_group}
+COMMANDS: dict[str, click.Command] = {
+    "train": train_group,
+    "render": render_group,
+    "align-colour": align_colour_command,
+}
 
 
 @train_group.command("stage2")

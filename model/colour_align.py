@@ -63,10 +63,13 @@ def run_colour_warmup(
     seed: int = 0,
     progress: bool = True,
     eval_views_per_dataset: int | None = None,
+    views_dir: Path | None = None,
 ) -> dict:
     """Warm-up into ``run_dir/warmup`` and store ``C⁻¹`` with each uncalibrated dataset.
 
-    Returns the warm-up metrics (held-out PSNR/SSIM without and with the matrices, the matrices) on the
+    With ``views_dir`` the source datasets stay untouched: each uncalibrated dataset gets a view
+    ``views_dir/<name>`` (:func:`relightanyone.format.dataset_view.link_dataset_view`) holding the matrix,
+    and training reads that view instead. Returns the warm-up metrics (held-out PSNR/SSIM without and with the matrices, the matrices) on the
     main process, an empty dict elsewhere.
     """
     import torch.distributed as dist
@@ -93,8 +96,17 @@ def run_colour_warmup(
 
         names = {load_manifest(Path(d)).info.name: Path(d) for d in data}
         for name, render_to_dataset in metrics["colour_matrices"].items():
+            target = names[name]
+            if views_dir is not None:
+                from relightanyone.align.colour import COLOUR_ALIGNMENT_FILENAME
+
+                from relightanyone.format.dataset_view import link_dataset_view
+
+                target = link_dataset_view(
+                    target, Path(views_dir) / name, exclude=frozenset({COLOUR_ALIGNMENT_FILENAME})
+                )
             write_learned_colour_matrix(
-                names[name],
+                target,
                 correction_from_render_matrix(np.asarray(render_to_dataset)),
                 {
                     "method": "stage1 colour warm-up (RelightAnyone 4.1)",

@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+from relightanyone.pipelines.report_command import report_command
 
 SHIPPED_PIPELINES = ("demo", "real")
 
@@ -155,4 +156,8 @@ def export_dataset_command(
     )
 
 
-COMMANDS: dict[str, click.Command] = {"run": run_command, "export-dataset": export_dataset_command}
+COMMANDS: dict[str, click.Command] = {
+    "run": run_command,
+    "export-dataset": export_dataset_command,
+    "report": report_command,
+}
