@@ -361,3 +361,134 @@ def train_stage2_command(
         f"{metrics['mode']}: {metrics['iterations']} iterations, last loss {last.get('total', float('nan')):.4g} "
         f"(L1 {last.get('l1', float('nan')):.4g}); wrote {out}"
     )
+
+
+@click.command("fit")
+@click.option(
+    "--stage1", "stage1_run", type=click.Path(exists=True, file_okay=False, path_type=Path), required=True
+)
+@click.option(
+    "--stage2",
+    "stage2_run",
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    required=True,
+    help="The stage-2 run trained on --stage1.",
+)
+@click.option(
+    "--data",
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    required=True,
+    help="Normalized dataset holding the subject's images, cameras and tracked meshes.",
+)
+@click.option("--subject", "subjects", multiple=True, help="Subject to fit (repeatable; default: --split).")
+@click.option(
+    "--split",
+    default="test",
+    show_default=True,
+    help="Without --subject: fit every subject of this split (the held-out subjects by default).",
+)
+@click.option(
+    "--frame", type=int, default=None, help="Frame to fit (default: the subject's first full-on frame)."
+)
+@click.option("--pattern", default="full", show_default=True, help="Lighting pattern of the input images.")
+@click.option(
+    "--camera",
+    "cameras",
+    multiple=True,
+    help="Input camera (repeatable; default: all cameras of the frame). One camera = a single-image fit.",
+)
+@click.option("--inversion-iterations", type=int, default=300, show_default=True)
+@click.option("--finetune-iterations", type=int, default=300, show_default=True)
+@click.option("--views-per-step", type=int, default=4, show_default=True)
+@click.option("--image-scale", type=float, default=1.0, show_default=True, help="Resize inputs (and K).")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--threads", type=int, default=None, help="CPU threads for torch (default: torch's choice).")
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Folder for <subject>.avatar files and fit_report.json.",
+)
+def fit_command(
+    stage1_run,
+    stage2_run,
+    data,
+    subjects,
+    split,
+    frame,
+    pattern,
+    cameras,
+    inversion_iterations,
+    finetune_iterations,
+    views_per_step,
+    image_scale,
+    seed,
+    threads,
+    out,
+) -> None:
+    """Fit unseen subjects (inversion, then finetuning with the locality regulariser, paper 3.3).
+
+    Each subject becomes OUT/<subject>.avatar: a relightable avatar for `relightanyone relight` and
+    `relightanyone export`. An avatar already in OUT is kept (delete it to fit again).
+
+    Example: relightanyone fit --stage1 runs/s1 --stage2 runs/s2 --data out/faceolat --split test --out avatars
+    """
+    import torch
+    from relightanyone.model.fit import FitSettings, fit_subject
+
+    from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
+
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        dataset = NormalizedDataset(data)
+        chosen = list(subjects) or sorted(
+            {k.split("/")[1] for k in dataset.select(splits=split, patterns=pattern)}
+        )
+    except (ValueError, FileNotFoundError, IncompleteDatasetError) as error:
+        raise click.ClickException(str(error)) from error
+    if not chosen:
+        raise click.ClickException(
+            f"{data}: no subject of split {split!r} has {pattern!r} rows; name subjects with --subject"
+        )
+    settings = FitSettings(
+        inversion_iterations=inversion_iterations,
+        finetune_iterations=finetune_iterations,
+        views_per_step=views_per_step,
+        seed=seed,
+    )
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    report = {}
+    for subject in chosen:
+        target = out / f"{subject}.avatar"
+        if target.is_file():
+            click.echo(f"{subject}: {target} exists, kept")
+            continue
+        try:
+            avatar = fit_subject(
+                stage1_run,
+                stage2_run,
+                data,
+                subject,
+                frame=frame,
+                cameras=list(cameras) or None,
+                pattern=pattern,
+                settings=settings,
+                image_scale=image_scale,
+                out=target,
+            )
+        except (ValueError, FileNotFoundError, IncompleteDatasetError) as error:
+            raise click.ClickException(f"{subject}: {error}") from error
+        losses = avatar.metadata.get("final_losses", {})
+        report[subject] = {"avatar": target.name, "views": len(avatar.metadata.get("cameras", [])), **losses}
+        click.echo(
+            f"{subject}: {len(avatar.metadata.get('cameras', []))} views, L1 {losses.get('l1', float('nan')):.4g}; wrote {target}"
+        )
+    previous = out / "fit_report.json"
+    if previous.is_file():
+        report = json.loads(previous.read_text()) | report
+    previous.write_text(json.dumps(report, indent=2, sort_keys=True) + "\n")
+
+
+COMMANDS["fit"] = fit_command

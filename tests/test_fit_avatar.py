@@ -261,3 +261,24 @@ def test_single_image_fit_without_a_tracked_mesh(world):
     single = fitter.avatar()
     assert single.metadata["mesh"] == "decoded" and single.tracked_vertices is None
     assert single.metadata["cameras"] == ["cam01"] and single.means.shape == (model.stage1.binding.count, 3)
+
+
+def test_fit_command_writes_one_avatar_per_held_out_subject_and_keeps_it(world, tmp_path):
+    from click.testing import CliRunner
+
+    from relightanyone.cli import cli
+
+    args = ["fit", "--stage1", str(world["stage1"]), "--stage2", str(world["stage2"]), "--data", str(world["data"]),
+            "--inversion-iterations", "2", "--finetune-iterations", "1", "--views-per-step", "2",
+            "--threads", "1", "--out", str(tmp_path)]  # fmt: skip
+    first = CliRunner().invoke(cli, args)
+    assert first.exit_code == 0, first.output
+    avatar = FittedAvatar.load(tmp_path / "s02.avatar")  # the only test-split subject
+    assert avatar.metadata["subject"] == "s02" and sorted(p.name for p in tmp_path.glob("*.avatar")) == [
+        "s02.avatar"
+    ]
+    assert "s02" in (tmp_path / "fit_report.json").read_text()
+    again = CliRunner().invoke(cli, args)
+    assert again.exit_code == 0 and "kept" in again.output
+    missing = CliRunner().invoke(cli, [*args[:7], "--subject", "nobody", "--out", str(tmp_path / "x")])
+    assert missing.exit_code != 0 and "nobody" in missing.output
