@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 
 import click
+from relightanyone.model.avatar_commands import COMMANDS as AVATAR_COMMANDS
 
 PRESET_NAMES = ("tiny", "demo", "small", "paper")
 
@@ -492,3 +493,4 @@ def fit_command(
 
 
 COMMANDS["fit"] = fit_command
+COMMANDS.update(AVATAR_COMMANDS)
