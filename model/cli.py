@@ -10,6 +10,7 @@ from pathlib import Path
 
 import click
 from relightanyone.model.avatar_commands import COMMANDS as AVATAR_COMMANDS
+from relightanyone.model.evaluate_command import evaluate_command
 
 PRESET_NAMES = ("tiny", "demo", "small", "paper")
 
@@ -494,3 +495,4 @@ def fit_command(
 
 COMMANDS["fit"] = fit_command
 COMMANDS.update(AVATAR_COMMANDS)
+COMMANDS["evaluate"] = evaluate_command

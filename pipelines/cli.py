@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+from relightanyone.pipelines.expand_command import expand_command
 from relightanyone.pipelines.report_command import report_command
 
 SHIPPED_PIPELINES = ("demo", "real")
@@ -160,4 +161,5 @@ COMMANDS: dict[str, click.Command] = {
     "run": run_command,
     "export-dataset": export_dataset_command,
     "report": report_command,
+    "expand": expand_command,
 }

@@ -65,6 +65,9 @@ def load_tile_kernel():
             # wait for it forever. Under our lock nobody else is building, so any baton here is stale.
             (build_dir / "lock").unlink(missing_ok=True)
             try:
+                built = _import_built(name, build_dir / f"{name}.so")
+                if built is not None:
+                    return built
                 return load(
                     name=name,
                     sources=[str(source) for source in SOURCES],
@@ -86,6 +89,26 @@ def load_tile_kernel():
             stacklevel=2,
         )
         return None
+
+
+def _import_built(name: str, library: Path):
+    """The module from an already built ``library``, or None (absent or unloadable: build it).
+
+    The name carries the hash of sources, flags and torch version, so a library under it is never stale;
+    loading it directly skips ninja's check, which rebuilds whenever another process' environment wrote
+    a different-looking command line into the shared build files (minutes of compiling on a small machine).
+    """
+    import importlib.util
+
+    if not library.is_file():
+        return None
+    try:
+        spec = importlib.util.spec_from_file_location(name, library)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    except ImportError:
+        return None
+    return module
 
 
 def tile_kernel_available() -> bool:
