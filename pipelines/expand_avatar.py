@@ -1,0 +1,103 @@
+"""The relightable avatar of one subject for the OLAT expansion: decoded when stage 1 knows the subject,
+fitted (and kept on disk for re-runs) when it does not.
+
+A stage-1 training subject is decoded from its own identity code with the OLAT dataset's lighting code, so
+its Gaussians carry the colours stage 2 was trained on; no optimisation runs. Any other subject (a held-out
+test subject, a subject of a dataset stage 1 never saw) is fitted to its full-on views by inversion and
+finetuning (:class:`relightanyone.model.fit.Fitter`). The fitted avatar file records a fingerprint of
+everything the fit depends on; a re-run loads it when the fingerprint matches and fits again otherwise.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import torch
+
+
+def decoded_avatar(model, subject_index: int, tracked_vertices: torch.Tensor | None, metadata: dict):
+    """A :class:`~relightanyone.model.avatar.FittedAvatar` of stage-1 training subject ``subject_index``.
+
+    Args:
+        model: :class:`~relightanyone.model.fit.RelightableModel` (stage 1, stage 2, the OLAT rig).
+        subject_index: row of ``model.stage1.identity_codes``.
+        tracked_vertices: (V, 3) tracked mesh of the rendered frame, or None.
+    Returns:
+        the avatar; its scene lighting is the calibrated rig (the OLAT dataset's full-on light).
+    """
+    from relightanyone.model.avatar import FittedAvatar
+    from relightanyone.model.fit import decode_codes
+
+    stage1 = model.stage1
+    if not 0 <= subject_index < stage1.identity_codes.shape[0]:
+        raise ValueError(
+            f"subject index {subject_index} is outside the stage-1 run's {stage1.identity_codes.shape[0]} codes"
+        )
+    with torch.no_grad():
+        z_id = stage1.identity_codes[subject_index : subject_index + 1].detach()
+        vertices, gaussians = decode_codes(stage1, z_id, model.lighting_code.reshape(1, -1))
+    return FittedAvatar(
+        means=gaussians.means[0].clone(),
+        quats=gaussians.quats[0].clone(),
+        scales=gaussians.scales[0].clone(),
+        opacities=gaussians.opacities[0].clone(),
+        colours=gaussians.colours[0].clone(),
+        vertices=vertices[0].clone(),
+        tracked_vertices=None if tracked_vertices is None else tracked_vertices.clone(),
+        binding=stage1.binding,
+        stage2=copy.deepcopy(model.stage2),
+        stage1_preset=stage1.preset,
+        stage2_preset=model.stage2_preset,
+        rig=model.rig,
+        scene_intensities=model.rig.intensities.detach().clone(),
+        metadata={"mesh": "decoded", "olat_dataset": model.olat_dataset, **model.sources, **metadata},
+    )
+
+
+def fitted_avatar(
+    model,
+    source_dir: Path,
+    subject: str,
+    frame: int,
+    fit_settings,
+    avatar_path: Path,
+    fingerprint: str,
+    image_scale: float = 1.0,
+):
+    """The fitted avatar of a subject stage 1 does not know: loaded from ``avatar_path`` when it was fitted
+    with the same ``fingerprint``, else fitted to the subject's full-on views of ``frame`` and saved there.
+
+    Args:
+        model: :class:`~relightanyone.model.fit.RelightableModel` (never changed; the fit finetunes a copy).
+        fit_settings: :class:`~relightanyone.model.fit.FitSettings` (iterations, learning rates, seed).
+        fingerprint: hex digest of the inputs of the fit (checkpoints, source rows, settings).
+    """
+    from relightanyone.model.avatar import FittedAvatar
+    from relightanyone.model.fit import Fitter
+    from relightanyone.model.fit_views import load_fit_views
+
+    avatar_path = Path(avatar_path)
+    if avatar_path.is_file():
+        try:
+            cached = FittedAvatar.load(avatar_path)
+        except ValueError:
+            cached = None  # unreadable (e.g. written by another version): fit again and replace it
+        if cached is not None and cached.metadata.get("expand_fingerprint") == fingerprint:
+            return cached
+    views = load_fit_views(source_dir, subject, frame, None, "full", image_scale)
+    template = model.stage1.mesh_decoder.template_vertices
+    if views.tracked_vertices is not None and views.tracked_vertices.shape != template.shape:
+        raise ValueError(
+            f"{source_dir}: tracked mesh of {subject!r} frame {frame} has {views.tracked_vertices.shape[0]} "
+            f"vertices, the stage-1 template has {template.shape[0]}; the expansion needs one topology"
+        )
+    torch.manual_seed(fit_settings.seed)
+    fitter = Fitter(model, views, fit_settings)
+    fitter.invert()
+    fitter.finetune()
+    avatar = fitter.avatar({"data": str(Path(source_dir).resolve()), "expand_fingerprint": fingerprint})
+    avatar_path.parent.mkdir(parents=True, exist_ok=True)
+    avatar.save(avatar_path)
+    # Render from the file, so a first run and a re-run that loads the avatar use the very same tensors.
+    return FittedAvatar.load(avatar_path)
