@@ -81,6 +81,11 @@ class LightRig:
         """(L, 3) linear RGB intensity of each light during its OLAT frame (duration / 5555, white)."""
         return np.repeat((self.olat_durations / DURATION_UNIT)[:, None], 3, axis=1)
 
+    @property
+    def full_on_intensities(self) -> np.ndarray:
+        """(L, 3) intensity of each light during the full-on frames (its pattern-0 duration / 5555)."""
+        return np.repeat((self.full_durations / DURATION_UNIT)[:, None], 3, axis=1)
+
 
 def _load_json(path: Path, what: str):
     try:
@@ -471,5 +476,6 @@ def plan(src: Path, options: AdapterOptions) -> DatasetPlan:
         subjects=subjects,
         light_positions=lights.positions_mm * 1e-3,
         light_intensities=lights.intensities,
+        full_on_light_intensities=lights.full_on_intensities,
         found=found,
     )

@@ -152,7 +152,8 @@ class DatasetPlan:
     subjects: list[SubjectPlan]
     # OLAT datasets: the rig in the dataset's world (metres) and linear RGB intensities, pattern names.
     light_positions: np.ndarray | None = None  # (L, 3)
-    light_intensities: np.ndarray | None = None  # (L, 3)
+    light_intensities: np.ndarray | None = None  # (L, 3) in each light's OLAT pattern
+    full_on_light_intensities: np.ndarray | None = None  # (L, 3) in the full-on pattern, when it differs
     refusals: list[Refusal] = field(default_factory=list)
     found: dict = field(default_factory=dict)  # facts printed before writing (cameras, frames, ...)
     mesh_units_to_m: float = 1.0  # scale of SubjectPlan.meshes coordinates to metres

@@ -193,6 +193,11 @@ def _lights(plan: DatasetPlan, tasks: list[SubjectTask]) -> tuple[list, dict]:
     placement = mean_similarity(transforms)
     positions = lights_to_canonical(plan.light_positions, placement)
     intensities = light_intensities_to_canonical(plan.light_intensities, placement)
+    full_on = (
+        None
+        if plan.full_on_light_intensities is None
+        else light_intensities_to_canonical(plan.full_on_light_intensities, placement)
+    )
     spread = max(
         float(np.linalg.norm(lights_to_canonical(plan.light_positions, T) - positions, axis=1).max() * 1000.0)
         for T in transforms
@@ -204,6 +209,7 @@ def _lights(plan: DatasetPlan, tasks: list[SubjectTask]) -> tuple[list, dict]:
             position_m=tuple(positions[k]),
             intensity_rgb=tuple(np.broadcast_to(intensities[k], (3,))),
             pattern=f"olat-{k:03d}",
+            full_on_intensity_rgb=None if full_on is None else tuple(np.broadcast_to(full_on[k], (3,))),
         )
         for k in range(len(positions))
     ]

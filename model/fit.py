@@ -92,6 +92,7 @@ class RelightableModel:
     rig: PointLights
     olat_dataset: str
     sources: dict = field(default_factory=dict)
+    full_on_rig: PointLights | None = None  # the rig as lit in full-on frames (None: as ``rig``)
 
     @property
     def training_codes(self) -> torch.Tensor:
@@ -106,7 +107,7 @@ def load_relightable_model(stage1_run: Path, stage2_run: Path) -> RelightableMod
     from relightanyone.model.checkpoint import CHECKPOINT_NAME, load_checkpoint
     from relightanyone.model.render_stage1 import load_run
     from relightanyone.model.stage2 import head_frame
-    from relightanyone.render.lights import olat_rig_from_table
+    from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
 
     from relightanyone.format.reader import NormalizedDataset
 
@@ -146,9 +147,9 @@ def load_relightable_model(stage1_run: Path, stage2_run: Path) -> RelightableMod
         raise ValueError(
             f"{dataset_path}: lights.arrow has no rows; the fit models the unknown lighting with that rig"
         )
-    rig = olat_rig_from_table(
-        {name: [row[name] for row in rows] for name in rows[0]}, source=str(dataset_path / "lights.arrow")
-    )
+    columns = {name: [row[name] for row in rows] for name in rows[0]}
+    rig = olat_rig_from_table(columns, source=str(dataset_path / "lights.arrow"))
+    full_on_rig = full_on_rig_from_table(columns, rig, source=str(dataset_path / "lights.arrow"))
     return RelightableModel(
         stage1=run.model,
         lighting_code=run.model.lighting_codes[run.datasets.index(dataset_name)].detach().clone(),
@@ -156,6 +157,7 @@ def load_relightable_model(stage1_run: Path, stage2_run: Path) -> RelightableMod
         stage2_preset=preset,
         rig=rig,
         olat_dataset=dataset_name,
+        full_on_rig=full_on_rig,
         sources={
             "stage1_run": str(Path(stage1_run).resolve()),
             "stage2_run": str(stage2_run.resolve()),
@@ -228,9 +230,8 @@ class Fitter:
         self.z_l = model.lighting_code.detach().reshape(1, -1)
         # Inversion starts at the mean identity; the unknown lighting starts as the calibrated full-on rig.
         self.z_id = torch.nn.Parameter(model.training_codes.mean(dim=0, keepdim=True).clone())
-        self.log_intensities = torch.nn.Parameter(
-            model.rig.intensities.clamp(min=MIN_INTENSITY).log().clone()
-        )
+        start = (model.full_on_rig or model.rig).intensities
+        self.log_intensities = torch.nn.Parameter(start.clamp(min=MIN_INTENSITY).log().clone())
         self.history: dict[str, list[dict[str, float]]] = {"inversion": [], "finetune": []}
         self.inversion_steps = 0
         self.finetune_steps = 0
@@ -238,6 +239,14 @@ class Fitter:
     def light_intensities(self) -> torch.Tensor:
         """(L, 3) current RGB intensity of every rig light."""
         return self.log_intensities.exp()
+
+    def decode(self, network: Stage1Model, codes: torch.Tensor) -> tuple[torch.Tensor, Gaussians]:
+        """Geometry and full-on Gaussians of identity codes (B, D_id) under the OLAT lighting code.
+
+        The one place a network turns codes into Gaussians, so another model (the single-stage baseline)
+        can reuse the whole fit by overriding it together with :meth:`render`.
+        """
+        return decode_codes(network, codes, self.z_l.expand(codes.shape[0], -1))
 
     def decoder_parameters(self) -> list[torch.nn.Parameter]:
         """The stage-1 weights finetuning moves: D_mesh, D_g, D_c."""
@@ -256,7 +265,7 @@ class Fitter:
         """Relit render of the current fit in some input views: (images (v, 3, H, W), vertices, Gaussians)."""
         from relightanyone.render.rasterize import rasterize
 
-        vertices, gaussians = decode_codes(self.stage1, self.z_id, self.z_l)
+        vertices, gaussians = self.decode(self.stage1, self.z_id)
         w2c, K = self.views.w2c[view_index], self.views.K[view_index]
         cameras = camera_centres(w2c)
         count = len(view_index)
@@ -336,12 +345,9 @@ class Fitter:
                 self.settings.locality_min_fraction,
                 rng,
             )
-            z_l = self.z_l.expand(codes.shape[0], -1)
             with torch.no_grad():
-                reference = decode_codes(self.reference, codes, z_l)
-            terms["locality"] = locality_loss(
-                decode_codes(self.stage1, codes, z_l), reference, self.spacing
-            ).mean()
+                reference = self.decode(self.reference, codes)
+            terms["locality"] = locality_loss(self.decode(self.stage1, codes), reference, self.spacing).mean()
             total = total + locality_weight * terms["locality"]
         return total, _logged(terms, total)
 

@@ -118,6 +118,8 @@ class SingleStageModel(nn.Module):
             self.sh_order,
             self.albedo_scale,
         )
-        albedo_maps = torch.nn.functional.softplus(reflectance_maps[:, 0:3]) * self.albedo_scale[:, None, None]
+        albedo_maps = (
+            torch.nn.functional.softplus(reflectance_maps[:, 0:3]) * self.albedo_scale[:, None, None]
+        )
         gaussians = assemble_gaussians(geometry_maps, albedo_maps, vertices, self.binding, self.spacing)
         return vertices, gaussians, params

@@ -108,6 +108,7 @@ class OlatView:
     subject: str
     frame: int
     lights: tuple[int, ...]
+    full_on: bool = False
 
 
 class OlatFrames:
@@ -120,7 +121,7 @@ class OlatFrames:
 
     def __init__(self, dataset_dir: Path, subject_names: list[str] | None = None) -> None:
         from relightanyone.align.colour import read_learned_colour_matrix
-        from relightanyone.render.lights import olat_rig_from_table
+        from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
 
         from relightanyone.format.reader import NormalizedDataset
 
@@ -134,6 +135,7 @@ class OlatFrames:
             )
         columns = {name: [row[name] for row in rows] for name in rows[0]}
         self.rig = olat_rig_from_table(columns, source=str(self.path / "lights.arrow"))
+        self.full_on_rig = full_on_rig_from_table(columns, self.rig, source=str(self.path / "lights.arrow"))
         index = columns.get("index", list(range(len(rows))))
         light_patterns = {p: int(i) for p, i in zip(columns.get("pattern", []), index, strict=False) if p}
         self.colour_matrix = read_learned_colour_matrix(self.path)
@@ -164,6 +166,7 @@ class OlatFrames:
                 cols["subject"][i],
                 int(cols["frame"][i]),
                 tuple(lights),
+                pattern == FULL_ON_PATTERN,
             )
             (self.full_on if pattern == FULL_ON_PATTERN else self.olat).append(view)
         if not self.full_on and not self.olat:
@@ -208,6 +211,11 @@ class OlatFrames:
             Ks.append(crop_intrinsics(row.K, box))
             w2cs.append(row.w2c)
         light_positions, light_intensities = batch_lights(self.rig, [list(v.lights) for v in views])
+        for sample, view in enumerate(views):
+            if view.full_on:  # the full-on pattern's own intensities (shorter exposures per light)
+                light_intensities[sample, : len(view.lights)] = self.full_on_rig.select(
+                    list(view.lights)
+                ).intensities
         tracked = [self.tracked_vertices(v) for v in views]
         vertex_count = next((t.shape[0] for t in tracked if t is not None), 0)
         return {
@@ -301,13 +309,13 @@ class Stage2Trainer:
         self.albedo_prior = None
         self.trainable.albedo_scale.copy_(self._albedo_scale_from_images())
 
-    def _diffuse_factor(self, vertices: torch.Tensor, binding) -> torch.Tensor:
-        """(3,) mean over Gaussians of Σ_l d_lambert · L_l: the rig's diffuse light on a unit albedo."""
+    def _diffuse_factor(self, vertices: torch.Tensor, binding, rig) -> torch.Tensor:
+        """(3,) mean over Gaussians of Σ_l d_lambert · L_l: the ``rig``'s diffuse light on a unit albedo."""
         from relightanyone.render.sh import lambertian_transfer
         from relightanyone.render.shading import point_light_sh
 
         transfer = lambertian_transfer(texel_mesh_normals(vertices, binding), self.preset.sh_order)
-        rig = self.frames.rig.to(self.device)
+        rig = rig.to(self.device)
         light_sh = point_light_sh(
             rig.positions[None],
             rig.intensities[None],
@@ -324,7 +332,9 @@ class Stage2Trainer:
         subjects = sorted({v.subject_index for v in self.frames.full_on + self.frames.olat})
         index = torch.tensor(subjects, device=self.device)
         vertices, gaussians = self.stage1(index, torch.full_like(index, self.lighting_index))
-        return gaussians.colours.mean(dim=0) / self._diffuse_factor(vertices, self.stage1.binding)
+        return gaussians.colours.mean(dim=0) / self._diffuse_factor(
+            vertices, self.stage1.binding, self.frames.full_on_rig
+        )
 
     @torch.no_grad()
     def _albedo_scale_from_images(self, views: int = 16) -> torch.Tensor:
@@ -339,9 +349,11 @@ class Stage2Trainer:
             count += float((mask > 0).sum())
         mean_colour = torch.tensor(totals / max(count, 1.0), dtype=torch.float32, device=self.device)
         template = self.trainable.mesh_decoder.template_vertices[None].to(self.device)
-        factor = self._diffuse_factor(template, self.trainable.binding)
-        if len(self.frames.full_on) == 0:
-            factor = factor / max(len(self.frames.rig), 1)  # OLAT frames see one light of the rig
+        if self.frames.full_on:
+            factor = self._diffuse_factor(template, self.trainable.binding, self.frames.full_on_rig)
+        else:  # OLAT frames see one light of the rig
+            factor = self._diffuse_factor(template, self.trainable.binding, self.frames.rig)
+            factor = factor / max(len(self.frames.rig), 1)
         return (mean_colour / factor).clamp(min=1e-6)
 
     def batch(self, iteration: int) -> dict[str, torch.Tensor]:

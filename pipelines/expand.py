@@ -335,4 +335,7 @@ def _light_row(row: dict) -> LightRow:
         position_m=tuple(row["position_m"]),
         intensity_rgb=tuple(row["intensity_rgb"]),
         pattern=row["pattern"],
+        full_on_intensity_rgb=None
+        if row.get("full_on_intensity_rgb") is None
+        else tuple(row["full_on_intensity_rgb"]),
     )

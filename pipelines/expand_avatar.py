@@ -50,7 +50,7 @@ def decoded_avatar(model, subject_index: int, tracked_vertices: torch.Tensor | N
         stage1_preset=stage1.preset,
         stage2_preset=model.stage2_preset,
         rig=model.rig,
-        scene_intensities=model.rig.intensities.detach().clone(),
+        scene_intensities=(model.full_on_rig or model.rig).intensities.detach().clone(),
         metadata={"mesh": "decoded", "olat_dataset": model.olat_dataset, **model.sources, **metadata},
     )
 

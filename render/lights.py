@@ -130,6 +130,25 @@ def olat_rig_from_table(table: Any, source: str = "lights table") -> PointLights
     )
 
 
+def full_on_rig_from_table(table: Any, rig: PointLights, source: str = "lights table") -> PointLights:
+    """The rig as lit in the full-on pattern: ``full_on_intensity_rgb`` where the table has it, else ``rig``.
+
+    Light stages often shorten each light's exposure in the full-on frame (the synthetic FaceOLAT: 1/20 of
+    its OLAT duration), so a full-on image is not the sum of the OLAT images; training and fitting on
+    full-on frames must use these intensities. ``rig`` is :func:`olat_rig_from_table` of the same table.
+    """
+    columns = _columns(table)
+    values = columns.get("full_on_intensity_rgb")
+    if values is None or any(v is None for v in values):
+        return rig
+    intensities = _vector_column(values, "full_on_intensity_rgb", source)
+    if "index" in columns:
+        intensities = intensities[np.argsort(np.asarray(columns["index"], dtype=np.int64))]
+    if (intensities < 0).any():
+        raise ValueError(f"{source}: full_on_intensity_rgb has negative values")
+    return PointLights(rig.positions, torch.from_numpy(intensities.astype(np.float32)))
+
+
 def stack_padded(rigs: Sequence[PointLights]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Batch rigs of different sizes; padding lights have zero intensity.
 

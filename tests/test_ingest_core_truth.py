@@ -124,6 +124,10 @@ def test_ingested_cameras_and_masks_match_the_truth(world, tmp_path, dataset_id)
     report = json.loads((summary.path / "ingest_report.json").read_text())
     assert set(report["alignment"]["subjects"]) == set(subjects)
     dataset = NormalizedDataset(summary.path)
+    if "full_on_scale" in truth.extra:  # a light stage: each light's full-on intensity is recorded too
+        lights = dataset.lights()
+        ratios = [np.divide(row["full_on_intensity_rgb"], row["intensity_rgb"]) for row in lights]
+        np.testing.assert_allclose(ratios, truth.extra["full_on_scale"], rtol=1e-3)
     for key, vertices in dataset.meshes().items():
         subject, frame = key.split("/")
         shape = world / "answers" / dataset_id / "subjects" / subject / "shape.obj"

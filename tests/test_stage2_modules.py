@@ -288,3 +288,22 @@ def test_single_stage_model_decodes_geometry_and_reflectance_with_gradients(sphe
     (params.albedo.sum() + params.visibility.sum() + gaussians.means.sum()).backward()
     assert model.identity_codes.grad[[0, 2]].abs().sum() > 0 and model.identity_codes.grad[1].abs().sum() == 0
     assert model.view_decoder.to_grid.weight.grad.abs().sum() > 0
+
+
+def test_full_on_rig_uses_the_recorded_full_on_intensities():
+    from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
+
+    table = {
+        "index": [1, 0],
+        "position_m": [[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]],
+        "intensity_rgb": [[2.0, 2.0, 2.0], [4.0, 4.0, 4.0]],
+        "full_on_intensity_rgb": [[0.1, 0.1, 0.1], [0.2, 0.3, 0.4]],
+    }
+    rig = olat_rig_from_table(table)
+    full = full_on_rig_from_table(table, rig)
+    assert torch.equal(full.positions, rig.positions)  # same lights, in index order
+    assert torch.allclose(full.intensities, torch.tensor([[0.2, 0.3, 0.4], [0.1, 0.1, 0.1]]))
+    unknown = dict(table, full_on_intensity_rgb=[None, None])
+    assert full_on_rig_from_table(unknown, rig) is rig
+    with pytest.raises(ValueError, match="negative"):
+        full_on_rig_from_table(dict(table, full_on_intensity_rgb=[[-1.0, 0, 0], [0, 0, 0]]), rig)

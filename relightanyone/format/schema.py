@@ -105,6 +105,9 @@ LIGHT_SCHEMA = _with_metadata(
             pa.field("position_m", pa.list_(pa.float64(), 3), nullable=False),
             pa.field("intensity_rgb", pa.list_(pa.float64(), 3), nullable=False),
             pa.field("pattern", pa.string(), nullable=False),
+            # The light's intensity in the full-on pattern (light stages often shorten each light's
+            # exposure there); null when it equals intensity_rgb or is unknown.
+            pa.field("full_on_intensity_rgb", pa.list_(pa.float64(), 3), nullable=True),
         ]
     ),
     "lights",
@@ -326,17 +329,21 @@ class MeshRow:
 
 @dataclass
 class LightRow:
-    """One rig light: position (3,) in metres in canonical space, linear RGB intensity (3,)."""
+    """One rig light: position (3,) in metres in canonical space, linear RGB intensity (3,) in its OLAT
+    pattern, and (when it differs) its intensity (3,) in the full-on pattern."""
 
     index: int
     name: str
     position_m: tuple[float, float, float]
     intensity_rgb: tuple[float, float, float]
     pattern: str
+    full_on_intensity_rgb: tuple[float, float, float] | None = None
 
     def to_arrow_dict(self) -> dict[str, Any]:
         values = asdict(self)
-        for name in ("position_m", "intensity_rgb"):
+        for name in ("position_m", "intensity_rgb", "full_on_intensity_rgb"):
+            if values[name] is None and name == "full_on_intensity_rgb":
+                continue
             vector = [float(v) for v in values[name]]
             if len(vector) != 3 or not all(math.isfinite(v) for v in vector):
                 raise SchemaError(f"light {self.index} ({self.name}): {name} must be 3 finite numbers")

@@ -1,0 +1,254 @@
+"""Evaluation: metrics, answer warping, light and frame matching, and the tables end to end on the sphere world."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from relightanyone.model.eval_cases import relight_weights
+from relightanyone.model.eval_metrics import masked_psnr, masked_rmse, masked_ssim_score
+from relightanyone.model.eval_truth import (
+    WorldAnswers,
+    match_lights,
+    read_answer_image,
+    warp_native_to_row,
+    world_to_normalized,
+)
+from relightanyone.render.envmap import save_envmap
+from sphere_world import LIGHTS, RIG_INTENSITY, SIZE, build_sphere_world, sphere_camera, true_olat_image
+
+
+def test_metrics_on_known_errors():
+    target = torch.rand(2, 3, 16, 16) * 0.5
+    mask = torch.zeros(2, 1, 16, 16)
+    mask[:, :, 4:12, 4:12] = 1
+    prediction = target + 0.1 * mask
+    prediction[:, :, :2] = 0.9  # outside the mask: ignored
+    assert torch.allclose(masked_rmse(prediction, target, mask), torch.full((2,), 0.1), atol=1e-5)
+    assert torch.allclose(masked_psnr(prediction, target, mask), torch.full((2,), 20.0), atol=1e-3)
+    assert torch.allclose(masked_ssim_score(target, target, mask), torch.ones(2), atol=1e-5)
+    assert (masked_ssim_score(target + 0.2 * torch.randn_like(target) * mask, target, mask) < 0.9).all()
+
+
+def test_warp_is_undistorted_crop_and_area_resize():
+    rng = np.random.default_rng(0)
+    native = cv2.GaussianBlur(rng.random((64, 80, 3)).astype(np.float32), (5, 5), 1.0)
+    K_native = np.array([[100.0, 0, 39.5], [0, 100.0, 31.5], [0, 0, 1]])
+    x0, y0, scale, width, height = 8, 4, 0.5, 24, 20
+    K_row = K_native.copy()
+    K_row[:2, 2] -= (x0, y0)
+    K_row[:2, :2] *= scale
+    K_row[:2, 2] = (K_row[:2, 2] + 0.5) * scale - 0.5
+    warped = warp_native_to_row(native, K_native, np.zeros(5), K_row, width, height)
+    crop = native[y0 : y0 + 2 * height, x0 : x0 + 2 * width]
+    expected = crop.reshape(height, 2, width, 2, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(warped, expected, atol=1e-5)
+    # With distortion, the warp is OpenCV's undistortion of the native image.
+    dist = np.array([-0.2, 0.05, 0.0, 0.0, 0.0])
+    undistorted = cv2.undistort(native, K_native, dist, None, K_native)
+    same = warp_native_to_row(native, K_native, dist, K_native, 80, 64)
+    np.testing.assert_allclose(
+        same[10:-10, 10:-10], undistorted[10:-10, 10:-10], atol=6e-3
+    )  # OpenCV maps in 1/32 px
+
+
+def test_world_to_normalized_recovers_the_alignment():
+    rng = np.random.default_rng(1)
+
+    def rigid(angle, axis, t):
+        R, _ = cv2.Rodrigues(np.asarray(axis, float) * angle)
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = R, t
+        return M
+
+    A = rigid(0.1, [0, 1, 0], [0.01, -0.02, 0.03])
+    P = rigid(0.05, [1, 0, 0], [0.0, 0.01, 0.0])
+    pairs = []
+    for _ in range(5):
+        world = rigid(rng.uniform(0, 3), rng.normal(size=3) / np.sqrt(3), rng.normal(size=3))
+        pairs.append((world, world @ P @ np.linalg.inv(A)))
+    np.testing.assert_allclose(world_to_normalized(pairs, P), A, atol=1e-9)
+
+
+def test_light_matching_and_relight_weights():
+    rig = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [-1.0, 0, 0]])
+    order, worst = match_lights(rig[[2, 0, 3]] + 0.01, rig)
+    assert order == [2, 0, 3] and worst == pytest.approx(0.01 * np.sqrt(3))
+    with pytest.raises(ValueError, match="do not match"):
+        match_lights(rig[[0]] + 0.6, rig)
+    rng = np.random.default_rng(2)
+    olat = rng.random((4, 200, 3))
+    weights = rng.random((4, 3))
+    relit = np.einsum("lc,lpc->pc", weights, olat)
+    np.testing.assert_allclose(relight_weights(olat, relit), weights, atol=1e-9)
+
+
+def write_sphere_answers(root: Path, paths: dict) -> Path:
+    """A world-shaped answers folder for the sphere world: d1 = olat (test s02), d2 = flat (test f01)."""
+    answers = root / "answers"
+    subjects = {"d1": {"s00": "train", "s01": "train", "s02": "test"}, "d2": {"f00": "train", "f01": "test"}}
+    (answers / "envmaps").mkdir(parents=True)
+    (answers / "splits.json").write_text(json.dumps(subjects))
+    (answers / "answer_lights.json").write_text(
+        json.dumps(
+            {
+                "rig": "d1",
+                "rig_indices": [0, 1, 2, 3],
+                "positions": LIGHTS.tolist(),
+                "intensities": np.full((4, 3), RIG_INTENSITY).tolist(),
+            }
+        )
+    )
+    save_envmap(answers / "envmaps" / "env_000.exr", torch.ones(3, 10, 20))
+    weights = np.array([[0.5, 0.4, 0.3], [0.1, 0.1, 0.2], [0.8, 0.9, 1.0], [0.2, 0.2, 0.2]])
+    for dataset, split in subjects.items():
+        cameras = {}
+        for c in range(4):
+            K, w2c = sphere_camera(c)
+            cameras[f"cam{c:02d}"] = {
+                "K": K.tolist(),
+                "w2c": w2c.tolist(),
+                "dist": [0.0] * 5,
+                "width": SIZE,
+                "height": SIZE,
+            }
+        (answers / dataset).mkdir()
+        (answers / dataset / "truth.json").write_text(json.dumps({"cameras": cameras, "head_poses": []}))
+        subject = next(s for s, v in split.items() if v == "test")
+        for c in range(4):
+            olat = [true_olat_image(subject, c, k)[0] for k in range(4)]
+            for k, image in enumerate(olat):
+                path = answers / dataset / "olat" / subject / f"cam{c:02d}" / f"{k:03d}.exr"
+                path.parent.mkdir(parents=True, exist_ok=True)
+                save_envmap(path, torch.from_numpy(image).permute(2, 0, 1))
+            relit = np.einsum("lc,lhwc->hwc", weights, np.stack(olat)).astype(np.float32)
+            path = answers / dataset / "relit" / subject / f"cam{c:02d}" / "env_000.exr"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            save_envmap(path, torch.from_numpy(relit).permute(2, 0, 1))
+    return root
+
+
+@pytest.fixture(scope="module")
+def evaluated(tmp_path_factory):
+    from relightanyone.model.eval_tables import EvaluationInputs, EvaluationSettings
+    from relightanyone.model.evaluate_command import run_evaluation
+
+    root = tmp_path_factory.mktemp("evaluate")
+    paths = build_sphere_world(root / "world", flat=True, single_stage=True)
+    world = write_sphere_answers(root / "synthetic", paths)
+    inputs = EvaluationInputs(
+        datasets={"d1": paths["data"], "d2": paths["flat"]},
+        stage1=paths["stage1"],
+        stage2=paths["stage2"],
+        single_stage=paths["single_stage"],
+        answers=WorldAnswers(world),
+    )
+    settings = EvaluationSettings(inversion_iterations=3, finetune_iterations=2, max_views=3, progress=False)
+    out = root / "out"
+    results = run_evaluation(inputs, settings, out, json_copy=root / "bench" / "evaluation.json")
+    return {"results": results, "out": out, "root": root, "paths": paths, "world": world}
+
+
+def test_answers_are_warped_onto_the_analytic_truth(evaluated):
+    from relightanyone.model.eval_cases import answer_frame, answer_masks, answer_olat_cases
+    from relightanyone.model.fit import load_relightable_model
+
+    answers = WorldAnswers(evaluated["world"])
+    paths = evaluated["paths"]
+    rig = load_relightable_model(paths["stage1"], paths["stage2"]).rig
+    frame = answer_frame(answers, "d2", paths["flat"], "f01", ["cam01", "cam02"])
+    np.testing.assert_allclose(frame.world_to_norm, np.eye(4), atol=1e-9)
+    cases = answer_olat_cases(answers, frame, rig, [1, 3], answer_masks(answers, frame))
+    assert [c.label for c in cases] == ["light 01", "light 03"]
+    for case, light in zip(cases, [1, 3], strict=True):
+        torch.testing.assert_close(case.light.positions[0], torch.tensor(LIGHTS[light], dtype=torch.float32))
+        for view in case.views:
+            truth, mask = true_olat_image("f01", int(view.camera[3:]), light)
+            inside = view.mask > 0.5
+            assert inside.sum() > 0.5 * mask.sum()  # eroded silhouette
+            assert not inside[~mask].any()
+            np.testing.assert_allclose(view.image[inside], truth[inside], atol=2e-3, rtol=2e-3)
+    assert read_answer_image(answers.olat_path("d2", "f01", "cam00", 0)).shape == (SIZE, SIZE, 3)
+
+
+def test_tables_and_report(evaluated):
+    results, out = evaluated["results"], evaluated["out"]
+    table1 = results["table1"]["subjects"]["d1/s02"]
+    assert table1["source"].startswith("world answers")
+    assert table1["lights"] == ["light 00", "light 01", "light 02", "light 03"]
+    for row in ("two_stage", "single_stage"):
+        metrics = table1["metrics"][row]
+        assert metrics["images"] == 4 * 3
+        assert np.isfinite([metrics["psnr"], metrics["rmse"], metrics["ssim"]]).all()
+        assert 0 < metrics["rmse"] < 1 and -1 <= metrics["ssim"] <= 1
+    table2 = results["table2"]["subjects"]["d1/s02"]
+    assert table2["weight_fit_max_residual"] < 1e-2
+    assert set(table2["metrics"]) == {"multi_view", "single_image"}
+    table3 = results["table3"]["subjects"]["d2/f01"]
+    assert set(table3["metrics"]) == {"with_lighting_code", "without_lighting_code"}
+    # Different lighting codes give different fits, so the ablation measures something.
+    assert (
+        table3["metrics"]["with_lighting_code"]["rmse"] != table3["metrics"]["without_lighting_code"]["rmse"]
+    )
+    saved = json.loads((out / "evaluation.json").read_text())
+    assert saved["table1"]["mean"]["two_stage"]["psnr"] == pytest.approx(
+        table1["metrics"]["two_stage"]["psnr"]
+    )
+    assert (evaluated["root"] / "bench" / "evaluation.json").read_text() == (
+        out / "evaluation.json"
+    ).read_text()
+    assert len(saved["goals"]) == 3
+    report = (out / "report.md").read_text()
+    assert "synthetic world" in report and "30.91" in report and "LPIPS" in report
+    for grid in [g for names in saved["grids"].values() for g in names]:
+        image = cv2.imread(str(out / grid))
+        assert image is not None and image.shape[0] >= 128
+    assert {Path(g).name for names in saved["grids"].values() for g in names} == {
+        "table1_d1_s02.png",
+        "table2_d1_s02.png",
+        "table3_d2_f01.png",
+    }
+
+
+def test_batched_point_light_renders_match_relight(evaluated):
+    from relightanyone.model.eval_cases import view_cameras
+    from relightanyone.model.eval_single_stage import SingleStageFitter, load_single_stage_run
+    from relightanyone.model.eval_tables import EvalView, render_point_lights
+    from relightanyone.model.fit import FitSettings, Fitter, load_relightable_model
+    from relightanyone.model.fit_views import load_fit_views
+    from relightanyone.render.lights import PointLights
+
+    paths = evaluated["paths"]
+    views = load_fit_views(paths["data"], "s02", cameras=["cam00", "cam03"])
+    settings = FitSettings(inversion_iterations=1, finetune_iterations=1, progress=False)
+    model = load_relightable_model(paths["stage1"], paths["stage2"])
+    avatars = [
+        Fitter(model, views, settings).avatar(),
+        SingleStageFitter(load_single_stage_run(paths["single_stage"]), views, settings).avatar(),
+    ]
+    cameras = view_cameras(
+        [EvalView(c, *sphere_camera(int(c[3:])), SIZE, SIZE, None, None) for c in ("cam00", "cam03")]
+    )
+    lights = PointLights(
+        torch.tensor(LIGHTS[[2, 0]], dtype=torch.float32), torch.tensor([[1.0, 2, 3], [2.5] * 3])
+    )
+    for avatar in avatars:
+        stacked = render_point_lights(avatar, cameras, lights)
+        assert stacked.shape == (2, 2, 3, SIZE, SIZE) and stacked.abs().sum() > 0
+        for k in range(2):
+            single = avatar.relight(
+                cameras, PointLights(lights.positions[k : k + 1], lights.intensities[k : k + 1])
+            )
+            torch.testing.assert_close(stacked[k], single, atol=1e-5, rtol=1e-4)
+
+
+def test_full_on_equals_sum_of_olat_in_a_consistent_dataset(evaluated):
+    from relightanyone.model.eval_cases import olat_sum_over_full_on
+
+    ratio = olat_sum_over_full_on(evaluated["paths"]["data"], "s00", ["cam00", "cam02"])
+    assert ratio == pytest.approx(1.0, abs=1e-3)
+    assert olat_sum_over_full_on(evaluated["paths"]["data"], "s02", ["cam00"]) is None  # no OLAT rows
