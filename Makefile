@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 TORCH_VERSION ?= 2.13.0
-PRESET ?= demo
+PRESET ?= tiny
 DEMO_OUT ?= demo-out
 PYTEST_ARGS ?=
 

@@ -47,6 +47,31 @@ def stage_times(out: Path) -> dict[str, float]:
     return dict(sorted(times.items(), key=lambda item: -item[1]))
 
 
+def model_results(out: Path) -> dict:
+    """Stage-1 held-out metrics and speed, the colour warm-up's with/without-matrix scores, and where the
+    evaluation's JSON is (copied to ``bench/results/evaluation.json``)."""
+    found = {}
+    metrics = out / "runs" / "stage1" / "metrics.json"
+    if metrics.is_file():
+        values = json.loads(metrics.read_text())
+        found["stage1"] = {
+            k: values[k] for k in ("held_out", "seconds_per_iteration", "iterations") if k in values
+        }
+    alignment = out / "aligned" / "colour_alignment.json"
+    if alignment.is_file():
+        values = json.loads(alignment.read_text())
+        found["colour_warmup"] = {
+            k: values[k]
+            for k in ("held_out_without_matrix", "held_out_with_colour_matrix", "held_out", "colour_matrices")
+            if k in values
+        }
+    evaluation = out / "evaluation" / "evaluation.json"
+    if evaluation.is_file():
+        shutil.copyfile(evaluation, RESULTS.parent / "evaluation.json")
+        found["evaluation"] = "bench/results/evaluation.json"
+    return found
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -55,7 +80,15 @@ def main() -> None:
     parser.add_argument("--preset", default="tiny", help="synthetic world preset (the make demo default)")
     parser.add_argument("--var", action="append", default=[], help="extra pipeline variable name=value")
     parser.add_argument("--keep", action="store_true", help="keep an existing output folder (not a cold run)")
+    parser.add_argument(
+        "--collect-only", action="store_true", help="only add the model results of --out to demo.json"
+    )
     args = parser.parse_args()
+    if args.collect_only:
+        result = json.loads(RESULTS.read_text())
+        result["models"] = model_results(args.out)
+        RESULTS.write_text(json.dumps(result, indent=2) + "\n")
+        return
     if args.out.exists() and not args.keep:
         shutil.rmtree(args.out)
     load_before = list(os.getloadavg())
@@ -72,6 +105,7 @@ def main() -> None:
         "cold_goal_met": cold < GOALS_S["cold"],
         "warm_goal_met": warm < GOALS_S["warm"],
         "stage_seconds": stage_times(args.out),
+        "models": model_results(args.out),
         "machine": {
             "cpu_count": os.cpu_count(),
             "platform": platform.platform(),

@@ -203,7 +203,7 @@ def test_tables_and_report(evaluated):
     ).read_text()
     assert len(saved["goals"]) == 3
     report = (out / "report.md").read_text()
-    assert "synthetic world" in report and "30.91" in report and "LPIPS" in report
+    assert "synthetic world" in report and "paper's level" in report and "LPIPS" in report
     for grid in [g for names in saved["grids"].values() for g in names]:
         image = cv2.imread(str(out / grid))
         assert image is not None and image.shape[0] >= 128
