@@ -138,6 +138,74 @@ def shade_reflectance(
     return combine_diffuse_specular(diffuse, specular)
 
 
+@torch.no_grad()
+def relight_views(
+    avatar,
+    w2c: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    lightings: list[Lighting],
+    lightings_per_pass: int = 8,
+    background: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Render an avatar in C pinhole views under P lightings: (P, C, 3, H, W) linear RGB.
+
+    ``avatar`` is a :class:`FittedAvatar` or anything with its Gaussian tensors, ``reflectance(camera
+    positions)``, ``head_centre`` and ``stage2_preset`` (the evaluation's single-stage avatar).
+
+    The stage-2 reflectance is evaluated once per view and shared by every lighting; up to
+    ``lightings_per_pass`` lightings are splatted in one rasterizer call as stacked colour channels (the
+    geometry, and so the sorting and blending weights, is the same for all of them).
+
+    Args:
+        w2c: (C, 4, 4); K: (C, 3, 3), on the avatar's device or movable there.
+        lightings: see the module docstring; resolved once each.
+        background: optional (3,) linear RGB; black by default.
+    """
+    from relightanyone.render.rasterize import rasterize
+
+    if lightings_per_pass < 1:
+        raise ValueError(f"lightings_per_pass must be >= 1, got {lightings_per_pass}")
+    device = avatar.means.device
+    w2c, K = w2c.to(device, torch.float32), K.to(device, torch.float32)
+    centres = camera_centres(w2c)
+    views = centres.shape[0]
+    params = avatar.reflectance(centres)
+    positions = avatar.means.expand(views, -1, -1)
+    resolved = [resolve_lighting(lighting) for lighting in lightings]
+    passes = []
+    for first in range(0, len(resolved), lightings_per_pass):
+        group = resolved[first : first + lightings_per_pass]
+        colours = [
+            shade_reflectance(
+                params,
+                positions,
+                centres,
+                lighting,
+                avatar.head_centre,
+                avatar.stage2_preset.lobe_normalization,
+                avatar.stage2_preset.inverse_square,
+            )
+            for lighting in group
+        ]
+        fill = None if background is None else background.to(device, torch.float32).repeat(len(group))
+        image, _, _ = rasterize(
+            avatar.means,
+            avatar.quats,
+            avatar.scales,
+            avatar.opacities,
+            torch.cat(colours, dim=-1),
+            w2c,
+            K,
+            width,
+            height,
+            background=fill,
+        )
+        passes.append(image.reshape(views, len(group), 3, height, width).transpose(0, 1))
+    return torch.cat(passes)
+
+
 def check_pinhole_cameras(cameras) -> tuple[int, int]:
     """(width, height) shared by a :class:`~relightanyone.render.camera.Cameras` batch without distortion."""
     if len(cameras) == 0:

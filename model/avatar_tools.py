@@ -246,23 +246,19 @@ def render_frames(
     """Relight the avatar in every camera under every lighting, camera-major (same images as
     :meth:`FittedAvatar.relight`).
 
-    Per camera, the stage-2 reflectance is evaluated once and shared by all lightings, and up to
-    ``lightings_per_pass`` relit colour sets are splatted in one pass as stacked feature channels (the
-    geometry is the same, so compositing each channel is unchanged).
+    Per camera, up to ``lightings_per_pass`` lightings share one stage-2 evaluation and one splat as stacked
+    feature channels (:func:`relightanyone.model.avatar.relight_views`).
 
     Args:
         cameras: C pinhole cameras of one size. background: (3,) linear RGB or None (black).
     Yields:
         ``(camera name, lighting label, image (3, H, W) linear RGB)``, one frame at a time.
     """
-    from relightanyone.model.avatar import check_pinhole_cameras, shade_reflectance
-    from relightanyone.model.relight import camera_centres
-    from relightanyone.render.rasterize import rasterize
+    from relightanyone.model.avatar import check_pinhole_cameras, relight_views
     from tqdm import tqdm
 
     width, height = check_pinhole_cameras(cameras)
     names = cameras.names or tuple(f"cam{i:03d}" for i in range(len(cameras)))
-    preset = avatar.stage2_preset
     device = avatar.means.device
     lightings = [NamedLighting(named.label, lighting_to(named.lighting, device)) for named in lightings]
     bar = tqdm(total=len(cameras) * len(lightings), desc="relight", unit="frame", disable=not progress)
@@ -270,38 +266,14 @@ def render_frames(
         for index, name in enumerate(names):
             w2c = cameras.w2c[index : index + 1].to(device, torch.float32)
             K = cameras.K[index : index + 1].to(device, torch.float32)
-            centre = camera_centres(w2c)
-            params = avatar.reflectance(centre)
             for first in range(0, len(lightings), lightings_per_pass):
                 chunk = lightings[first : first + lightings_per_pass]
-                colours = [
-                    shade_reflectance(
-                        params,
-                        avatar.means[None],
-                        centre,
-                        named.lighting,
-                        avatar.head_centre,
-                        preset.lobe_normalization,
-                        preset.inverse_square,
-                    )[0]
-                    for named in chunk
-                ]
-                fill = None if background is None else background.to(device, torch.float32).repeat(len(chunk))
-                stacked, _, _ = rasterize(
-                    avatar.means,
-                    avatar.quats,
-                    avatar.scales,
-                    avatar.opacities,
-                    torch.cat(colours, dim=-1),
-                    w2c,
-                    K,
-                    width,
-                    height,
-                    background=fill,
+                stacked = relight_views(
+                    avatar, w2c, K, width, height, [named.lighting for named in chunk], len(chunk), background
                 )
                 for offset, named in enumerate(chunk):
                     bar.update(1)
-                    yield name, named.label, stacked[0, 3 * offset : 3 * offset + 3].cpu()
+                    yield name, named.label, stacked[offset, 0].cpu()
 
 
 def exposure_gain(images: Sequence[torch.Tensor], stops: float | None) -> float:

@@ -135,43 +135,25 @@ def test_subjects(inputs: EvaluationInputs, world_name: str, limit: int | None) 
 def render_point_lights(avatar, cameras, lights: PointLights) -> torch.Tensor:
     """The avatar under each of L point lights alone -> (L, V, 3, H, W), in one splat per view.
 
-    Works for any avatar with ``reflectance(camera_positions)``, Gaussian tensors, ``head_centre`` and
-    ``stage2_preset`` (the fitted two-stage avatar and the single-stage one): the reflectance is decoded
-    once per view and the L relit colours are splatted as 3L feature channels.
+    Works for any avatar :func:`relightanyone.model.avatar.relight_views` accepts (the fitted two-stage
+    avatar and the single-stage one): the reflectance is decoded once per view and the L relit colours are
+    splatted as 3L feature channels.
     """
-    from relightanyone.model.avatar import check_pinhole_cameras, shade_reflectance
-    from relightanyone.model.relight import camera_centres
-    from relightanyone.render.rasterize import rasterize
+    from relightanyone.model.avatar import check_pinhole_cameras, relight_views
 
     width, height = check_pinhole_cameras(cameras)
-    w2c, K = cameras.w2c.float(), cameras.K.float()
-    positions = camera_centres(w2c)
-    params = avatar.reflectance(positions)
-    views = positions.shape[0]
-    colours = [
-        shade_reflectance(
-            params,
-            avatar.means.expand(views, -1, -1),
-            positions,
-            PointLights(lights.positions[k : k + 1], lights.intensities[k : k + 1]),
-            avatar.head_centre,
-            avatar.stage2_preset.lobe_normalization,
-            avatar.stage2_preset.inverse_square,
-        )
-        for k in range(len(lights))
+    singles = [
+        PointLights(lights.positions[k : k + 1], lights.intensities[k : k + 1]) for k in range(len(lights))
     ]
-    image, _, _ = rasterize(
-        avatar.means,
-        avatar.quats,
-        avatar.scales,
-        avatar.opacities,
-        torch.cat(colours, dim=-1),
-        w2c,
-        K,
+    return relight_views(
+        avatar,
+        cameras.w2c.float(),
+        cameras.K.float(),
         width,
         height,
+        singles,
+        lightings_per_pass=len(singles),
     )
-    return image.reshape(views, len(lights), 3, height, width).transpose(0, 1)
 
 
 def compare(avatar, cases: list[LightCase], lpips) -> Comparison:

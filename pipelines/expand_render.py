@@ -77,41 +77,15 @@ def render_lightings(
     Returns:
         (P, 3, H, W) linear RGB, black background, clamped to >= 0.
     """
-    from relightanyone.model.avatar import shade_reflectance
-    from relightanyone.model.relight import camera_centres
-    from relightanyone.render.rasterize import rasterize
+    from relightanyone.model.avatar import relight_views
 
-    if lightings_per_pass < 1:
-        raise ValueError(f"lightings_per_pass must be >= 1, got {lightings_per_pass}")
-    w2c, K = w2c.reshape(1, 4, 4), K.reshape(1, 3, 3)
-    centre = camera_centres(w2c)
-    params = avatar.reflectance(centre)  # view-dependent reflectance, shared by every lighting
-    positions = avatar.means[None]
-    images = []
-    for start in range(0, len(lightings), lightings_per_pass):
-        group = lightings[start : start + lightings_per_pass]
-        colours = [
-            shade_reflectance(
-                params,
-                positions,
-                centre,
-                item.lighting,
-                avatar.head_centre,
-                avatar.stage2_preset.lobe_normalization,
-                avatar.stage2_preset.inverse_square,
-            )[0]
-            for item in group
-        ]
-        features, _, _ = rasterize(
-            avatar.means,
-            avatar.quats,
-            avatar.scales,
-            avatar.opacities,
-            torch.cat(colours, dim=-1),
-            w2c,
-            K,
-            width,
-            height,
-        )
-        images.append(features[0].reshape(len(group), 3, height, width))
-    return torch.cat(images).clamp(min=0.0)
+    images = relight_views(
+        avatar,
+        w2c.reshape(1, 4, 4),
+        K.reshape(1, 3, 3),
+        width,
+        height,
+        [item.lighting for item in lightings],
+        lightings_per_pass,
+    )
+    return images[:, 0].clamp(min=0.0)
