@@ -3,10 +3,11 @@ fit time of unknown subjects, and peak memory.
 
 Usage::
 
-    python bench/expand.py [--source /tmp/dev/norm/d2 --stage1 /tmp/dev/s1 --stage2 /tmp/dev/s2]
+    python bench/expand.py [--source demo-out/aligned/ava256 --stage1 demo-out/runs/stage1
+        --stage2 demo-out/runs/stage2]
         [--subjects 2|all] [--fit-iterations 10 5] [--workers 1] [--out bench-runs/expand]
 
-Without trained runs at the given paths it builds the tiny sphere world of the tests (flat + OLAT datasets,
+The defaults are what ``make demo`` leaves in ``demo-out/``. Without trained runs at the given paths it builds the tiny sphere world of the tests (flat + OLAT datasets,
 stage 1 and stage 2) and expands its flat dataset. Writes ``bench/results/expand.json`` with machine info and
 the load average (the machine may be shared). CUDA numbers are measured only when CUDA is available.
 """
@@ -25,7 +26,7 @@ import time
 from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results" / "expand.json"
-DEV = Path("/tmp/dev")
+DEMO = Path(__file__).resolve().parent.parent / "demo-out"
 
 
 def machine_info() -> dict:
@@ -126,9 +127,9 @@ def _expand(args, source: Path, stage1: Path, stage2: Path, device: str) -> dict
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--source", type=Path, default=DEV / "norm" / "d2")
-    parser.add_argument("--stage1", type=Path, default=DEV / "s1")
-    parser.add_argument("--stage2", type=Path, default=DEV / "s2")
+    parser.add_argument("--source", type=Path, default=DEMO / "aligned" / "ava256")
+    parser.add_argument("--stage1", type=Path, default=DEMO / "runs" / "stage1")
+    parser.add_argument("--stage2", type=Path, default=DEMO / "runs" / "stage2")
     parser.add_argument("--fit-iterations", type=int, nargs=2, default=[10, 5])
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument(
