@@ -206,8 +206,13 @@ def locality_codes(
     ``z_r = z + t (z_k − z)`` with ``t ~ U(min_fraction, 1)``: other identities and the space towards them,
     kept away from the fitted subject itself.
     """
-    chosen = torch.as_tensor(generator.integers(0, training_codes.shape[0], size=count))
-    fraction = torch.as_tensor(generator.uniform(min_fraction, 1.0, size=(count, 1)), dtype=z_id.dtype)
+    # Drawn with NumPy for reproducibility, then moved to the codes' device (a fit may run on CUDA).
+    chosen = torch.as_tensor(
+        generator.integers(0, training_codes.shape[0], size=count), device=training_codes.device
+    )
+    fraction = torch.as_tensor(
+        generator.uniform(min_fraction, 1.0, size=(count, 1)), dtype=z_id.dtype, device=z_id.device
+    )
     return z_id + fraction * (training_codes[chosen] - z_id)
 
 
