@@ -54,9 +54,16 @@ class OverviewRow:
 
 
 def _source_description(provenance: dict) -> str:
-    """``source`` or ``source (from A; B)`` for a derived dataset, following the parents one level."""
+    """``source`` or ``source (from A; B)`` for a derived dataset, following the parents one level.
+
+    A parent's details (paths, hashes) stay in manifest.json: the table names it only.
+    """
     source = str(provenance.get("source_dataset", ""))
-    parents = [str(p.get("source_dataset", "")) for p in provenance.get("parents", []) if isinstance(p, dict)]
+    parents = [
+        re.split(r" \(| (?=/)| sha256:", str(p.get("source_dataset", "")), maxsplit=1)[0]
+        for p in provenance.get("parents", [])
+        if isinstance(p, dict)
+    ]
     return f"{source} (from {'; '.join(parents)})" if parents else source
 
 
