@@ -62,6 +62,29 @@ def lambert_sphere(scale, albedo, K, w2c, positions, intensities):
     return image, mask
 
 
+def sphere_row(dataset: str, subject: str, camera: int, pattern: str, split: str, image, mask):
+    """The normalized image row of one rendered sphere view (frame 0, camera ``cam{camera:02d}``)."""
+    K, w2c = sphere_camera(camera)
+    source = f"{subject}/{pattern}/cam{camera:02d}.exr"
+    return build_image_row(
+        dataset=dataset,
+        subject=subject,
+        frame=0,
+        camera=f"cam{camera:02d}",
+        pattern=pattern,
+        split=split,
+        K=K,
+        w2c=w2c,
+        image=encode_image(image),
+        image_encoding="raw-f16",
+        mask=encode_mask(mask),
+        width=SIZE,
+        height=SIZE,
+        source=source,
+        source_sha256=hashlib.sha256(source.encode()).hexdigest(),
+    )
+
+
 def write_olat_world(root: Path) -> Path:
     """The OLAT dataset ``root/olat``: s00, s01 (train) under the rig and OLAT; s02 (test) under SCENE_INTENSITIES."""
     vertices, obj_text = sphere_obj()
@@ -102,26 +125,7 @@ def write_olat_world(root: Path) -> Path:
                     patterns = {"full": (LIGHTS, SCENE_INTENSITIES)}
                 for pattern, (positions, intensities) in patterns.items():
                     image, mask = lambert_sphere(scale, albedo, K, w2c, positions, intensities)
-                    source = f"{subject}/{pattern}/cam{c:02d}.exr"
-                    part.add(
-                        build_image_row(
-                            dataset="olat",
-                            subject=subject,
-                            frame=0,
-                            camera=f"cam{c:02d}",
-                            pattern=pattern,
-                            split=split,
-                            K=K,
-                            w2c=w2c,
-                            image=encode_image(image),
-                            image_encoding="raw-f16",
-                            mask=encode_mask(mask),
-                            width=SIZE,
-                            height=SIZE,
-                            source=source,
-                            source_sha256=hashlib.sha256(source.encode()).hexdigest(),
-                        )
-                    )
+                    part.add(sphere_row("olat", subject, c, pattern, split, image, mask))
     writer.commit()
     (folder / "template.obj").write_text(obj_text)
     return folder
@@ -168,26 +172,7 @@ def write_flat_world(root: Path) -> Path:
             for c in range(4):
                 K, w2c = sphere_camera(c)
                 image, mask = lambert_sphere(scale, albedo, K, w2c, LIGHTS, FLAT_INTENSITIES)
-                source = f"{subject}/full/cam{c:02d}.exr"
-                part.add(
-                    build_image_row(
-                        dataset="flat",
-                        subject=subject,
-                        frame=0,
-                        camera=f"cam{c:02d}",
-                        pattern="full",
-                        split=split,
-                        K=K,
-                        w2c=w2c,
-                        image=encode_image(image),
-                        image_encoding="raw-f16",
-                        mask=encode_mask(mask),
-                        width=SIZE,
-                        height=SIZE,
-                        source=source,
-                        source_sha256=hashlib.sha256(source.encode()).hexdigest(),
-                    )
-                )
+                part.add(sphere_row("flat", subject, c, "full", split, image, mask))
     writer.commit()
     (folder / "template.obj").write_text(obj_text)
     return folder
