@@ -9,6 +9,7 @@ subject, a two-worker process pool and the Ray executor write byte-identical fil
 from __future__ import annotations
 
 import hashlib
+import json
 import shutil
 from pathlib import Path
 
@@ -158,3 +159,22 @@ def test_the_command_prints_a_dry_run_plan_and_names_a_wrong_run(world, tmp_path
     swapped = [str(world["flat"]), "--stage1", str(world["stage2"]), "--stage2", str(world["stage2"])]
     result = CliRunner().invoke(expand_command, [*swapped, "--out", str(tmp_path)])
     assert result.exit_code != 0 and "expected 'stage1'" in result.output
+
+
+def test_an_expansion_exports_as_exr_files_with_its_rig(expanded, tmp_path):
+    """Tools outside this one read an expansion like any normalized dataset: EXRs plus camera/light tables."""
+    from click.testing import CliRunner
+    from relightanyone.pipelines.cli import export_dataset_command
+
+    from relightanyone.format.reader import NormalizedDataset
+
+    _, _, folder = expanded
+    result = CliRunner().invoke(
+        export_dataset_command, [str(folder), "--format", "exr", "--out", str(tmp_path)]
+    )
+    assert result.exit_code == 0, result.output
+    dataset = NormalizedDataset(folder)
+    assert len(list(tmp_path.rglob("*.exr"))) == len(dataset.select())
+    lights = json.loads((tmp_path / "lights.json").read_text())
+    assert [light["pattern"] for light in lights] == [row["pattern"] for row in dataset.lights()]
+    assert json.loads((tmp_path / "dataset.json").read_text())["kind"] == "synthetic-olat"
