@@ -16,6 +16,10 @@ MM_TO_M = 1e-3
 CM_TO_M = 1e-2
 
 _ORTHO_TOL = 1e-6
+# Checks below compare with max-abs deviations: np.allclose costs ~100 µs per 4×4, and ingest makes
+# thousands of these checks per subject.
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+_EYE3 = np.eye(3)
 
 
 def _as_transform(T: Any, name: str = "transform") -> np.ndarray:
@@ -27,7 +31,7 @@ def _as_transform(T: Any, name: str = "transform") -> np.ndarray:
         raise ValueError(f"{name} must be a 4×4 (or 3×4) matrix, got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} contains NaN or infinite values")
-    if not np.allclose(arr[3], [0.0, 0.0, 0.0, 1.0]):
+    if np.abs(arr[3] - _LAST_ROW).max() > 1e-5:
         raise ValueError(f"{name} last row must be [0, 0, 0, 1], got {arr[3].tolist()}")
     return arr
 
@@ -51,7 +55,7 @@ def similarity(scale: float, R: Any = None, t: Any = None) -> np.ndarray:
     t = np.zeros(3) if t is None else np.asarray(t, dtype=np.float64).reshape(-1)
     if R.shape != (3, 3) or t.shape != (3,):
         raise ValueError(f"R must be (3, 3) and t (3,), got {R.shape} and {t.shape}")
-    if not np.allclose(R @ R.T, np.eye(3), atol=_ORTHO_TOL) or np.linalg.det(R) <= 0:
+    if np.abs(R @ R.T - _EYE3).max() > _ORTHO_TOL or np.linalg.det(R) <= 0:
         raise ValueError("R is not a proper rotation (orthonormal with determinant +1)")
     T = np.eye(4)
     T[:3, :3] = scale * R
@@ -72,7 +76,7 @@ def decompose_similarity(T: Any, atol: float = _ORTHO_TOL) -> tuple[float, np.nd
         raise ValueError(f"similarity has a non-positive determinant ({det:.3g}): reflection or degenerate")
     scale = det ** (1.0 / 3.0)
     R = A / scale
-    if not np.allclose(R @ R.T, np.eye(3), atol=atol):
+    if np.abs(R @ R.T - _EYE3).max() > atol:
         raise ValueError("transform is not a similarity: its linear part is not a scaled rotation")
     return scale, R, T[:3, 3].copy()
 

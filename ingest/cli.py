@@ -145,7 +145,7 @@ def _adapter_command(command_name: str, module_name: str) -> click.Command:
         try:
             adapter.detect(src)
             plan = adapter.plan(src, options)
-            prepared = prepare(plan, tracking, preset, template)
+            prepared = prepare(plan, tracking, preset, template, workers=workers, executor=executor)
         except (LayoutError, FileNotFoundError, ValueError) as error:
             raise click.ClickException(str(error)) from None
         for line in found_lines(plan, prepared[0], prepared[2]):

@@ -4,18 +4,21 @@ A task is one subject (:class:`~relightanyone.ingest.runner.SubjectTask`); it wr
 :class:`~relightanyone.format.shards.ShardWriter` and returns a small
 :class:`~relightanyone.ingest.runner.TaskResult`, so the coordinator never holds pixels and its memory
 does not grow with the number of subjects. The commit that follows sorts rows by key, which makes the
-dataset independent of the order in which tasks finish.
+dataset independent of the order in which tasks finish. Before the tasks, the coordinator relates each
+subject's frames to the tracking on the same executor (:func:`map_items`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from functools import partial
 
 EXECUTORS = ("local", "ray")
 WORKER_PRELOAD = (
     "relightanyone.ingest.subject_task",
     "relightanyone.ingest.decode",
     "relightanyone.ingest.steps",
+    "relightanyone.ingest.tracking",
     "relightanyone.align.colour",
     "relightanyone.align.geometry",
     "relightanyone.format.codecs",
@@ -33,86 +36,110 @@ def _bar(total: int, progress: bool, desc: str):
     return tqdm(total=total, desc=desc, unit="view")
 
 
-def run_tasks(
-    writer, settings, tasks: Sequence, workers: int = 1, executor: str = "local", progress: bool = True
-):
-    """Run ``run_subject_task(writer, settings, task)`` for every task; returns the results in task order.
+def map_items(
+    function: Callable,
+    items: Sequence,
+    workers: int = 1,
+    executor: str = "local",
+    on_done: Callable | None = None,
+    cost: Callable | None = None,
+) -> list:
+    """``[function(item) for item in items]`` on an executor; results in item order.
 
-    ``executor="local"``: in this process when ``workers == 1``, else a ``ProcessPoolExecutor`` of
-    ``workers`` processes started by a ``forkserver`` (fresh interpreters, like ``spawn``: tasks and their
-    arguments are pickled, no state is inherited from the caller; the server imports the heavy modules
-    once and every worker forks from it). ``executor="ray"``: ``ray.init(num_cpus=workers)``
-    when Ray is not yet initialised (a running cluster is used as it is). The progress bar counts views.
+    ``executor="local"``: in this process when ``workers == 1`` or there is one item, else a
+    ``ProcessPoolExecutor`` of ``workers`` processes started by a ``forkserver`` (fresh interpreters, like
+    ``spawn``: the function and items are pickled, nothing is inherited from the caller; the server imports
+    the heavy modules once and every worker forks from it). ``executor="ray"``: ``ray.init(num_cpus=workers)``
+    when Ray is not yet initialised (a running cluster is used as it is). ``on_done(item)`` runs in this
+    process as each item finishes; ``cost(item)`` orders submission, largest first, so a long item does not
+    start last and leave the other workers idle.
     """
-    from .subject_task import run_subject_task
-
     if executor not in EXECUTORS:
         raise ValueError(f"unknown executor {executor!r}; expected one of {', '.join(EXECUTORS)}")
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    order = list(range(len(items)))
+    if cost is not None:
+        order.sort(key=lambda i: -cost(items[i]))
+    if executor == "ray":
+        results = _map_ray(function, items, order, workers, on_done)
+    elif workers == 1 or len(items) <= 1:
+        results = {}
+        for i in order:
+            results[i] = function(items[i])
+            if on_done is not None:
+                on_done(items[i])
+    else:
+        results = _map_pool(function, items, order, workers, on_done)
+    return [results[i] for i in range(len(items))]
+
+
+def run_tasks(
+    writer, settings, tasks: Sequence, workers: int = 1, executor: str = "local", progress: bool = True
+):
+    """Run ``run_subject_task(writer, settings, task)`` for every task (:func:`map_items`); returns the
+    results in task order. The progress bar counts views."""
+    from .subject_task import run_subject_task
+
     bar = _bar(sum(len(t.plan.views) for t in tasks), progress, f"ingest {settings.dataset}")
-    results = {}
     try:
-        if executor == "ray":
-            results = _run_ray(writer, settings, tasks, workers, bar)
-        elif workers == 1 or len(tasks) <= 1:
-            for task in tasks:
-                results[task.task] = run_subject_task(writer, settings, task)
-                if bar is not None:
-                    bar.update(len(task.plan.views))
-        else:
-            results = _run_pool(writer, settings, tasks, workers, bar)
+        return map_items(
+            partial(run_subject_task, writer, settings),
+            tasks,
+            workers,
+            executor,
+            on_done=None if bar is None else lambda task: bar.update(len(task.plan.views)),
+            cost=lambda task: len(task.plan.views),
+        )
     finally:
         if bar is not None:
             bar.close()
-    return [results[t.task] for t in tasks]
 
 
-def _run_pool(writer, settings, tasks, workers, bar) -> dict:
+def _map_pool(function, items, order, workers, on_done) -> dict:
     import multiprocessing
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-
-    from .subject_task import run_subject_task
 
     results = {}
     context = multiprocessing.get_context("forkserver")
     # Workers fork from a clean server process that imported the heavy modules once, instead of each
     # spawned worker importing them again; nothing is inherited from this (possibly threaded) process.
     context.set_forkserver_preload(list(WORKER_PRELOAD))
-    with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=context) as pool:
-        # Largest subjects first, so a long one does not start last and leave the other workers idle.
-        ordered = sorted(tasks, key=lambda t: -len(t.plan.views))
-        futures = {pool.submit(run_subject_task, writer, settings, task): task for task in ordered}
+    with ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=context) as pool:
+        futures = {pool.submit(function, items[i]): i for i in order}
         pending = set(futures)
         while pending:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
             for future in done:
-                task = futures[future]
-                results[task.task] = future.result()
-                if bar is not None:
-                    bar.update(len(task.plan.views))
+                i = futures[future]
+                results[i] = future.result()
+                if on_done is not None:
+                    on_done(items[i])
     return results
 
 
-def _run_ray(writer, settings, tasks, workers, bar) -> dict:
+def _call(function, item):
+    return function(item)
+
+
+def _map_ray(function, items, order, workers, on_done) -> dict:
     try:
         import ray
     except ImportError:
         raise RuntimeError("the ray executor needs Ray: pip install 'relightanyone[ray]'") from None
-    from .subject_task import run_subject_task
 
     if not ray.is_initialized():
         ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
-    remote = ray.remote(num_cpus=1)(run_subject_task)
-    writer_ref, settings_ref = ray.put(writer), ray.put(settings)
-    refs = {remote.remote(writer_ref, settings_ref, task): task for task in tasks}
+    remote = ray.remote(num_cpus=1)(_call)
+    function_ref = ray.put(function)
+    refs = {remote.remote(function_ref, items[i]): i for i in order}
     results = {}
     pending = list(refs)
     while pending:
         done, pending = ray.wait(pending, num_returns=1)
         for ref in done:
-            task = refs[ref]
-            results[task.task] = ray.get(ref)
-            if bar is not None:
-                bar.update(len(task.plan.views))
+            i = refs[ref]
+            results[i] = ray.get(ref)
+            if on_done is not None:
+                on_done(items[i])
     return results

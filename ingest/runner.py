@@ -21,6 +21,7 @@ import json
 import re
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -109,20 +110,37 @@ def native_cameras_by_frame(plan: SubjectPlan) -> dict[int, dict[str, np.ndarray
     return out
 
 
-def plan_tasks(plan: DatasetPlan, tracking_dir: Path | None, template: Template) -> list[SubjectTask]:
+def _align_subject_item(item: tuple, template: Template):
+    """:func:`align_subject` of one ``(subject, native cameras by frame, tracking)`` item."""
+    return align_subject(*item, template)
+
+
+def plan_tasks(
+    plan: DatasetPlan,
+    tracking_dir: Path | None,
+    template: Template,
+    workers: int = 1,
+    executor: str = "local",
+) -> list[SubjectTask]:
     """Relate every (subject, frame) of ``plan`` to the tracking (no pixel is decoded): the VHAP export
-    under ``tracking_dir``, or, without one, the meshes the plan ships (custom captures)."""
+    under ``tracking_dir``, or, without one, the meshes the plan ships (custom captures). Subjects are
+    aligned in parallel on the ingest's executor."""
+    from .executors import map_items
     from .tracking import shipped_tracking
 
-    tasks = []
-    for subject in sorted(plan.subjects, key=lambda s: s.subject):
-        native = native_cameras_by_frame(subject)
+    subjects = sorted(plan.subjects, key=lambda s: s.subject)
+    items = []
+    for subject in subjects:
         if tracking_dir is not None:
             tracking = subject_tracking_folder(tracking_dir, subject.subject)
         else:
             tracking = shipped_tracking(Path(plan.source_root), subject.meshes, plan.mesh_units_to_m)
-        alignments, failures = align_subject(subject.subject, native, tracking, template)
-        tasks.append(SubjectTask(task_name(subject.subject), subject, alignments, failures))
+        items.append((subject.subject, native_cameras_by_frame(subject), tracking))
+    aligned = map_items(partial(_align_subject_item, template=template), items, workers, executor)
+    tasks = [
+        SubjectTask(task_name(subject.subject), subject, alignments, failures)
+        for subject, (alignments, failures) in zip(subjects, aligned, strict=True)
+    ]
     names = [t.task for t in tasks]
     if len(set(names)) != len(names):
         raise ValueError(f"{plan.source_root}: two subjects share a name; subject names must be unique")
@@ -256,11 +274,13 @@ def prepare(
     preset: str,
     template: Path | None = None,
     encoding: str | None = None,
+    workers: int = 1,
+    executor: str = "local",
 ) -> tuple[IngestSettings, Template, list[SubjectTask]]:
     """Everything before writing: settings, the template and every frame related to the tracking.
 
     ``tracking_dir`` None uses the meshes the plan ships (custom captures); then ``template`` is needed
-    unless the dataset folder holds ``template.obj``.
+    unless the dataset folder holds ``template.obj``. ``workers``/``executor`` as for the ingest itself.
     """
     from relightanyone.format.codecs import DEFAULT_IMAGE_ENCODING
 
@@ -286,7 +306,8 @@ def prepare(
         margin=CROP_MARGIN,
         encoding=encoding or DEFAULT_IMAGE_ENCODING,
     )
-    return settings, loaded, plan_tasks(plan, Path(tracking_dir) if tracking_dir else None, loaded)
+    tasks = plan_tasks(plan, Path(tracking_dir) if tracking_dir else None, loaded, workers, executor)
+    return settings, loaded, tasks
 
 
 def found_lines(plan: DatasetPlan, settings: IngestSettings, tasks: list[SubjectTask]) -> list[str]:
@@ -349,7 +370,7 @@ def ingest_dataset(
 
     start = time.perf_counter()
     settings, loaded, tasks = prepared or prepare(
-        plan, Path(tracking_dir) if tracking_dir else None, preset, template, encoding
+        plan, Path(tracking_dir) if tracking_dir else None, preset, template, encoding, workers, executor
     )
     lights, light_facts = _lights(plan, tasks)
     lighting = (

@@ -72,7 +72,7 @@ def _intrinsics(value: Any, path: str | Path, field: str, transpose: bool = Fals
     """Parse a (3, 3) pinhole K (optionally stored transposed): positive focal lengths, last row (0, 0, 1)."""
     K = _matrix(value, (3, 3), path, field)
     K = K.T if transpose else K
-    if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
+    if np.abs(K[2] - (0.0, 0.0, 1.0)).max() > 1e-5 or K[1, 0] != 0:
         raise CalibrationError(
             path, field, f"not a pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]]: {K.tolist()}"
         )
@@ -89,7 +89,7 @@ def _rigid(
     T = T.T if transpose else T
     out = np.eye(4)
     out[:3, :4] = T[:3, :4]
-    if T.shape == (4, 4) and not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+    if T.shape == (4, 4) and np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-5:
         raise CalibrationError(path, field, f"last row must be [0, 0, 0, 1], got {T[3].tolist()}")
     out[:3, :3] = _rotation(out[:3, :3], path, field)
     return out

@@ -27,16 +27,25 @@ WRITER_SCRIPT = textwrap.dedent(
 
     root, mode = Path(sys.argv[1]), sys.argv[2]
     original_write = arrow_io.StreamFileWriter.write
+    original_write_message = arrow_io.StreamFileWriter.write_message
 
-    def pausing_write(self, batch):
+    def pause_here(self):
         in_commit = self.path.name == "images-00001.arrow" and len(self.offsets) == 1
         in_task = self.path.parent.name == "s001.tmp" and len(self.offsets) == 2
         if (mode == "pause-commit" and in_commit) or (mode == "pause-task" and in_task):
             print("PAUSED", flush=True)
             time.sleep(120)
+
+    def pausing_write(self, batch):
+        pause_here(self)
         return original_write(self, batch)
 
+    def pausing_write_message(self, message):
+        pause_here(self)
+        return original_write_message(self, message)
+
     arrow_io.StreamFileWriter.write = pausing_write
+    arrow_io.StreamFileWriter.write_message = pausing_write_message
     write_example_dataset(root, max_shard_bytes=20_000)
     print("DONE", flush=True)
     """

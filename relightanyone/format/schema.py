@@ -260,7 +260,7 @@ def camera_problems(K: np.ndarray, w2c: np.ndarray, width: int, height: int) -> 
             problems.append(
                 f"K principal point ({K[0, 2]:g}, {K[1, 2]:g}) is far outside the {width}x{height} image"
             )
-        if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
+        if np.abs(K[2] - (0.0, 0.0, 1.0)).max() > 1e-5 or K[1, 0] != 0:
             problems.append(
                 f"K last row must be 0 0 1 and K[1,0] must be 0, got {K[2].tolist()}, {K[1, 0]:g}"
             )
@@ -268,9 +268,9 @@ def camera_problems(K: np.ndarray, w2c: np.ndarray, width: int, height: int) -> 
         problems.append("w2c has non-finite entries")
     else:
         rotation = w2c[:3, :3]
-        if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-5) or np.linalg.det(rotation) < 0:
+        if np.abs(rotation @ rotation.T - np.eye(3)).max() > 1e-5 or np.linalg.det(rotation) < 0:
             problems.append("w2c rotation is not orthonormal and right-handed")
-        if not np.allclose(w2c[3], [0.0, 0.0, 0.0, 1.0]):
+        if np.abs(w2c[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-5:
             problems.append(f"w2c last row must be 0 0 0 1, got {w2c[3].tolist()}")
     return problems
 

@@ -53,7 +53,7 @@ from relightanyone.format.arrow_io import (
     StreamFileWriter,
     atomic_write_bytes,
     fsync_dir,
-    read_batch_at,
+    read_message_at,
     read_table_file,
     sha256_file,
     write_table_file,
@@ -157,6 +157,7 @@ class PartWriter:
         self.tmp_dir.mkdir(parents=True)
         self._images = StreamFileWriter(self.tmp_dir / "images.arrow", IMAGE_SCHEMA, compression_level)
         self._keys: list[str] = []
+        self._index: list[list] = []  # INDEX_COLUMNS of every row, so the commit need not decode rows
         self._key_set: set[str] = set()
         self._meshes: dict[str, dict] = {}
         self._quarantine: dict[str, QuarantineEntry] = {}
@@ -165,7 +166,9 @@ class PartWriter:
         """Add one image row (checked against the schema)."""
         if row.key in self._key_set:
             raise SchemaError(f"task {self.task!r}: image key {row.key!r} added twice")
-        self._images.write(_single_row_batch(IMAGE_SCHEMA, row.to_arrow_dict()))
+        values = row.to_arrow_dict()
+        self._images.write(_single_row_batch(IMAGE_SCHEMA, values))
+        self._index.append([values[name] for name in INDEX_COLUMNS])
         self._keys.append(row.key)
         self._key_set.add(row.key)
 
@@ -184,7 +187,9 @@ class PartWriter:
         self._images.finish()
         atomic_write_bytes(
             self.tmp_dir / "offsets.json",
-            json.dumps({"keys": self._keys, "offsets": self._images.offsets}).encode(),
+            json.dumps(
+                {"keys": self._keys, "offsets": self._images.offsets, "index": self._index}
+            ).encode(),
         )
         meshes = [self._meshes[k] for k in sorted(self._meshes)]
         write_table_file(self.tmp_dir / MESHES_NAME, pa.Table.from_pylist(meshes, schema=MESH_SCHEMA))
@@ -281,17 +286,18 @@ class ShardWriter:
                 f"{self.dataset_dir}: nothing to commit; call ShardWriter.begin() and write parts first"
             )
         parts = sorted(p for p in self.parts_dir.iterdir() if p.is_dir() and not p.name.endswith(".tmp"))
-        located: list[tuple[str, int, int]] = []
+        located: list[tuple[str, int, int, list | None]] = []
         owner: dict[str, str] = {}
         for part_index, part in enumerate(parts):
             offsets = json.loads((part / "offsets.json").read_text())
-            for key, offset in zip(offsets["keys"], offsets["offsets"], strict=True):
+            index = offsets.get("index") or [None] * len(offsets["keys"])  # absent in older parts
+            for key, offset, values in zip(offsets["keys"], offsets["offsets"], index, strict=True):
                 if key in owner:
                     raise SchemaError(
                         f"{self.info.name}: image key {key!r} is in tasks {owner[key]!r} and {part.name!r}"
                     )
                 owner[key] = part.name
-                located.append((key, part_index, offset))
+                located.append((key, part_index, offset, values))
         located.sort()
         sources = [pa.memory_map(str(part / "images.arrow")) for part in parts]
 
@@ -328,15 +334,20 @@ class ShardWriter:
             writer.finish()
             shards.append(self._entry(writer.path.name, len(writer.offsets)))
 
-        for _key, part_index, offset in located:
+        for _key, part_index, offset, values in located:
             if writer is None:
                 writer = StreamFileWriter(
                     self.dataset_dir / SHARD_PATTERN.format(len(shards)), IMAGE_SCHEMA, self.compression_level
                 )
-            batch = read_batch_at(sources[part_index], offset, IMAGE_SCHEMA)
-            batch_offset = writer.write(batch)
-            values = {name: batch.column(name)[0].as_py() for name in INDEX_COLUMNS}
-            index_rows.append({**values, "shard": len(shards), "batch_offset": batch_offset})
+            # Rows move as encoded messages: compressed once by their task, never decoded here.
+            message = read_message_at(sources[part_index], offset)
+            if values is None:
+                batch = pa.ipc.read_record_batch(message, IMAGE_SCHEMA)
+                values = [batch.column(name)[0].as_py() for name in INDEX_COLUMNS]
+            batch_offset = writer.write_message(message)
+            index_rows.append(
+                {**dict(zip(INDEX_COLUMNS, values)), "shard": len(shards), "batch_offset": batch_offset}
+            )
             if bar:
                 bar.update()
             if writer.bytes_written >= self.max_shard_bytes:
