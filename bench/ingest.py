@@ -4,7 +4,9 @@ Measures, in one run on the same images:
 
 * ``bare_loop``: only decode + resize to the crop size + encode, one process, no files written;
 * ``end_to_end``: ``ingest_dataset`` (plan already made; alignment, decode, colour, undistort, crop, mask,
-  encode, parts, commit) with 1 and 2 local workers;
+  encode, parts, commit) with 1 and 2 local workers, warm like the bare loop: a 2-subject ingest with the
+  same workers runs first, so imports and the worker pool's server are not timed;
+* ``cold``: the same runs in a fresh process, imports and pool start included (what one CLI call pays);
 * ``peak_memory``: peak RSS of a fresh process ingesting 2, 4, 8 ... subjects (it should stay flat).
 
 Usage: ``python bench/ingest.py [--world DIR] [--out bench/results/ingest.json]``; the world is
@@ -100,25 +102,38 @@ def end_to_end(plan, world: Path, workers: int) -> dict:
     }
 
 
-def peak_memory_child(world: Path, subjects: int) -> None:
-    """Run in a fresh process: ingest ``subjects`` subjects with one worker and print peak RSS."""
+def warm_end_to_end(plan, world: Path, workers: int) -> dict:
+    """:func:`end_to_end` after a 2-subject ingest with the same workers (imports, pool server)."""
+    warm_plan = make_plan(world, 2)
+    end_to_end(warm_plan, world, workers)
+    return end_to_end(plan, world, workers)
+
+
+def child_run(world: Path, subjects: int, workers: int) -> None:
+    """Run in a fresh process: ingest ``subjects`` subjects cold and print the result with peak RSS."""
+    start = time.perf_counter()
     plan = make_plan(world, subjects)
-    result = end_to_end(plan, world, 1)
+    result = end_to_end(plan, world, workers)
+    result["seconds_with_imports"] = round(time.perf_counter() - start, 3)
     result["subjects"] = subjects
     result["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     print(json.dumps(result))
 
 
+def in_fresh_process(world: Path, subjects: int, workers: int) -> dict:
+    output = subprocess.run(
+        [sys.executable, __file__, "--world", str(world), "--child", str(subjects), str(workers)],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
+    return json.loads(output.strip().splitlines()[-1])
+
+
 def peak_memory(world: Path, counts: list[int]) -> list[dict]:
     rows = []
     for count in counts:
-        output = subprocess.run(
-            [sys.executable, __file__, "--world", str(world), "--memory-child", str(count)],
-            check=True,
-            capture_output=True,
-            text=True,
-        ).stdout
-        rows.append(json.loads(output.strip().splitlines()[-1]))
+        rows.append(in_fresh_process(world, count, 1))
         print(f"  {count} subjects: peak RSS {rows[-1]['peak_rss_mb']} MB", flush=True)
     return rows
 
@@ -139,10 +154,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--world", type=Path, default=DEFAULT_WORLD)
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "ingest.json")
-    parser.add_argument("--memory-child", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--child", type=int, nargs=2, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
-    if args.memory_child is not None:
-        peak_memory_child(args.world, args.memory_child)
+    if args.child is not None:
+        child_run(args.world, *args.child)
         return
     from relightanyone.ingest.runner import PRESET_SIZES
 
@@ -152,11 +167,14 @@ def main() -> None:
     print(f"{plan.view_count} views of {len(plan.subjects)} subjects, crops {size}²", flush=True)
     bare = bare_loop(plan, size)
     print(f"bare loop: {bare['images_per_s']} images/s", flush=True)
-    one = end_to_end(plan, args.world, 1)
+    one = warm_end_to_end(plan, args.world, 1)
     print(f"end to end, 1 worker: {one['images_per_s']} images/s", flush=True)
-    two = end_to_end(plan, args.world, 2)
+    two = warm_end_to_end(plan, args.world, 2)
     print(f"end to end, 2 workers: {two['images_per_s']} images/s", flush=True)
     subjects = len(plan.subjects)
+    cold = [in_fresh_process(args.world, subjects, workers) for workers in (1, 2)]
+    for run in cold:
+        print(f"cold, {run['workers']} worker(s): {run['seconds_with_imports']} s with imports", flush=True)
     counts = sorted({c for c in (2, 4, 8, 16) if c <= subjects} | {subjects})
     memory = peak_memory(args.world, counts)
     result = {
@@ -171,11 +189,15 @@ def main() -> None:
         "machine": machine(),
         "bare_loop": bare,
         "end_to_end": [one, two],
+        "cold": cold,
         "ratios": {
             "end_to_end_1_worker_over_bare_loop": round(one["images_per_s"] / bare["images_per_s"], 3),
             "goal_end_to_end_over_bare_loop": round(1 / 1.3, 3),
             "two_workers_over_one": round(two["images_per_s"] / one["images_per_s"], 3),
             "goal_two_workers_over_one": 1.7,
+            "cold_two_workers_over_one": round(
+                cold[0]["seconds_with_imports"] / cold[1]["seconds_with_imports"], 3
+            ),
         },
         "peak_memory": memory,
     }

@@ -77,11 +77,16 @@ def read_obj_vertices(path: Path, expected: int | None = None) -> np.ndarray:
         text = path.read_text(encoding="utf-8", errors="replace")
     except OSError as error:
         raise ValueError(f"{path}: cannot read mesh ({error.strerror or error})") from None
-    records = [line[2:].split()[:3] for line in text.splitlines() if line.startswith("v ")]
-    if not records:
+    lines = [line[2:] for line in text.split("\n") if line.startswith("v ")]
+    if not lines:
         raise ValueError(f"{path}: no vertices found (not an OBJ mesh?)")
     try:
-        vertices = np.asarray(records, dtype=np.float64)
+        # One C-level parse of all numbers; records with a w or colour column take the per-line path.
+        numbers = np.array(" ".join(lines).split(), dtype=np.float64)
+        if numbers.size == 3 * len(lines) and all(len(line.split()) == 3 for line in lines[:1]):
+            vertices = numbers.reshape(-1, 3)
+        else:
+            vertices = np.asarray([line.split()[:3] for line in lines], dtype=np.float64)
     except ValueError:
         raise ValueError(f"{path}: a vertex record does not hold 3 numbers") from None
     if vertices.ndim != 2 or vertices.shape[1] != 3:

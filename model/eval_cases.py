@@ -220,8 +220,7 @@ def answer_masks(answers: WorldAnswers, frame: AnswerFrame) -> dict[str, np.ndar
     masks = {}
     for camera, *_ in frame.rows:
         total = sum(
-            read_answer_image(answers.olat_path(frame.world_dataset, frame.subject, camera, k))
-            for k in range(lights)
+            answers.olat_image(frame.world_dataset, frame.subject, camera, k) for k in range(lights)
         )
         covered = (total.sum(axis=-1) > ANSWER_MASK_THRESHOLD).astype(np.float32)
         warped = _warp(frame, camera, covered[..., None])[..., 0]
@@ -263,7 +262,7 @@ def answer_olat_cases(
         views = []
         for camera, *_ in frame.rows:
             K, w2c, width, height = frame.geometry(camera)
-            image = read_answer_image(answers.olat_path(frame.world_dataset, frame.subject, camera, k))
+            image = answers.olat_image(frame.world_dataset, frame.subject, camera, k)
             views.append(EvalView(camera, K, w2c, width, height, _warp(frame, camera, image), masks[camera]))
         light = PointLights(lights.positions[k : k + 1], lights.intensities[k : k + 1])
         cases.append(LightCase(f"light {index:02d}", views, light=light, extra={"light_match_m": worst}))

@@ -376,10 +376,19 @@ class Evaluation:
         }
 
     def table3(self) -> None:
+        """The lighting-code ablation on flat-lit datasets, with and without the OLAT dataset's z_l.
+
+        ``table3``: stage-1 training subjects decoded from their identity codes, no fitting (what the OLAT
+        expansion renders), so nothing can absorb the code's effect. ``table3_fitted``: held-out subjects
+        fitted on their full-on frame; fitting also estimates the scene lighting and finetunes stage 1.
+        """
         from relightanyone.format.reader import NormalizedDataset
+        from relightanyone.format.schema import make_mesh_key
+        from relightanyone.model.avatar import decoded_avatar
 
         stage1_names = self._stage1_dataset_names()
-        table = {}
+        stage1_subjects = self._stage1_subjects()
+        decoded, fitted = {}, {}
         for world_name, path in sorted(self.inputs.datasets.items()):
             dataset = NormalizedDataset(path)
             if world_name == self.olat_world or dataset.manifest.info.kind != "flat":
@@ -391,12 +400,31 @@ class Evaluation:
                 )
             own_code = self.model.stage1.lighting_codes[stage1_names.index(dataset.name)].detach().clone()
             without = dataclasses.replace(self.model, lighting_code=own_code)
+            known = sorted(s.split("/", 1)[1] for s in stage1_subjects if s.split("/", 1)[0] == dataset.name)
+            for subject in known[: self.settings.subjects_per_dataset]:
+                cameras, _ = subject_cameras(path, subject, self.settings.max_views)
+                cases, source = self.olat_cases(world_name, subject, cameras)
+                index = stage1_subjects.index(f"{dataset.name}/{subject}")
+                frame = min(dataset.row(k).frame for k in dataset.select(subjects=subject, patterns="full"))
+                tracked = dataset.meshes().get(make_mesh_key(subject, frame))
+                tracked = None if tracked is None else torch.as_tensor(np.asarray(tracked), dtype=torch.float32)
+                self.inputs_images.setdefault(f"{world_name}/{subject}", self._first_image(path, subject))
+                decoded[f"{world_name}/{subject}"] = {
+                    "source": source,
+                    "seen_in_training": self.seen_in_training(world_name, subject),
+                    "cameras": cameras,
+                    "lights": [c.label for c in cases],
+                    "rows": {
+                        "with_lighting_code": compare(decoded_avatar(self.model, index, tracked, {}), cases, self.lpips),
+                        "without_lighting_code": compare(decoded_avatar(without, index, tracked, {}), cases, self.lpips),
+                    },
+                }
             for subject in test_subjects(self.inputs, world_name, self.settings.subjects_per_dataset):
                 cameras, _ = subject_cameras(path, subject, self.settings.max_views)
                 cases, source = self.olat_cases(world_name, subject, cameras)
                 with_code = self.fit(world_name, subject, cameras, "two-stage with z_l (OLAT code)")
                 without_code = self.fit(world_name, subject, cameras, "two-stage own z_l", model=without)
-                table[f"{world_name}/{subject}"] = {
+                fitted[f"{world_name}/{subject}"] = {
                     "source": source,
                     "seen_in_training": self.seen_in_training(world_name, subject),
                     "cameras": cameras,
@@ -406,7 +434,22 @@ class Evaluation:
                         "without_lighting_code": compare(without_code, cases, self.lpips),
                     },
                 }
-        self.tables["table3"] = table
+        self.tables["table3"] = decoded
+        self.tables["table3_fitted"] = fitted
+
+    def _first_image(self, path: Path, subject: str) -> np.ndarray:
+        """(H, W, 3) the subject's first full-on row (the input column of the image grids)."""
+        from relightanyone.format.reader import NormalizedDataset
+
+        dataset = NormalizedDataset(path)
+        _, image, _ = dataset.decoded(sorted(dataset.select(subjects=subject, patterns="full"))[0])
+        return image
+
+    def _stage1_subjects(self) -> list[str]:
+        """``dataset/subject`` of every stage-1 identity code, in code order."""
+        from relightanyone.model.checkpoint import CHECKPOINT_NAME, load_checkpoint
+
+        return list(load_checkpoint(Path(self.inputs.stage1) / CHECKPOINT_NAME)["subjects"])
 
     def seen_in_training(self, world_name: str, subject: str) -> list[str]:
         """Runs whose training subjects include this one (then it is not held out; the report says so)."""
@@ -424,7 +467,10 @@ class Evaluation:
         for label, run in runs.items():
             info_path = None if run is None else Path(run) / "run.json"
             if info_path is not None and info_path.is_file():
-                if name in json.loads(info_path.read_text()).get("subjects", []):
+                info = json.loads(info_path.read_text())
+                # A stage-2 run lists every stage-1 subject (its code order) but trains on one dataset.
+                trained_on = info.get("dataset", {}).get("name") if info.get("stage") == "stage2" else None
+                if name in info.get("subjects", []) and trained_on in (None, name.split("/", 1)[0]):
                     seen.append(label)
         return seen
 

@@ -60,6 +60,7 @@ class WorldAnswers:
         self.splits: dict[str, dict[str, str]] = json.loads((self.root / "splits.json").read_text())
         self._cameras: dict[str, dict[str, NativeCamera]] = {}
         self._poses: dict[str, dict[tuple[str, int], np.ndarray]] = {}
+        self._rendered: dict[tuple[str, str, str], np.ndarray] = {}
 
     @property
     def datasets(self) -> list[str]:
@@ -126,6 +127,23 @@ class WorldAnswers:
 
     def olat_path(self, dataset: str, subject: str, camera: str, light: int) -> Path:
         return self.root / dataset / "olat" / subject / camera / f"{light:03d}.exr"
+
+    def olat_image(self, dataset: str, subject: str, camera: str, light: int) -> np.ndarray:
+        """(H, W, 3) true image of a subject under answer light ``light`` in a native camera.
+
+        Held-out subjects' images are read from the answers; any other subject's (the stage-1 training
+        subjects of the lighting-code ablation) are rendered from the world's seed once per
+        (subject, camera) and kept.
+        """
+        path = self.olat_path(dataset, subject, camera, light)
+        if path.is_file():
+            return read_answer_image(path)
+        key = (dataset, subject, camera)
+        if key not in self._rendered:
+            from relightanyone.synth.world import render_subject_olat
+
+            self._rendered[key] = render_subject_olat(self.world, dataset, subject, [camera])[camera]
+        return self._rendered[key][light]
 
     def relit_path(self, dataset: str, subject: str, camera: str, envmap: str) -> Path:
         return self.root / dataset / "relit" / subject / camera / f"{envmap}.exr"

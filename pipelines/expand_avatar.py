@@ -10,49 +10,12 @@ everything the fit depends on; a re-run loads it when the fingerprint matches an
 
 from __future__ import annotations
 
-import copy
 from pathlib import Path
 
 import torch
+from relightanyone.model.avatar import decoded_avatar
 
-
-def decoded_avatar(model, subject_index: int, tracked_vertices: torch.Tensor | None, metadata: dict):
-    """A :class:`~relightanyone.model.avatar.FittedAvatar` of stage-1 training subject ``subject_index``.
-
-    Args:
-        model: :class:`~relightanyone.model.fit.RelightableModel` (stage 1, stage 2, the OLAT rig).
-        subject_index: row of ``model.stage1.identity_codes``.
-        tracked_vertices: (V, 3) tracked mesh of the rendered frame, or None.
-    Returns:
-        the avatar; its scene lighting is the calibrated rig (the OLAT dataset's full-on light).
-    """
-    from relightanyone.model.avatar import FittedAvatar
-    from relightanyone.model.fit import decode_codes
-
-    stage1 = model.stage1
-    if not 0 <= subject_index < stage1.identity_codes.shape[0]:
-        raise ValueError(
-            f"subject index {subject_index} is outside the stage-1 run's {stage1.identity_codes.shape[0]} codes"
-        )
-    with torch.no_grad():
-        z_id = stage1.identity_codes[subject_index : subject_index + 1].detach()
-        vertices, gaussians = decode_codes(stage1, z_id, model.lighting_code.reshape(1, -1))
-    return FittedAvatar(
-        means=gaussians.means[0].clone(),
-        quats=gaussians.quats[0].clone(),
-        scales=gaussians.scales[0].clone(),
-        opacities=gaussians.opacities[0].clone(),
-        colours=gaussians.colours[0].clone(),
-        vertices=vertices[0].clone(),
-        tracked_vertices=None if tracked_vertices is None else tracked_vertices.clone(),
-        binding=stage1.binding,
-        stage2=copy.deepcopy(model.stage2),
-        stage1_preset=stage1.preset,
-        stage2_preset=model.stage2_preset,
-        rig=model.rig,
-        scene_intensities=(model.full_on_rig or model.rig).intensities.detach().clone(),
-        metadata={"mesh": "decoded", "olat_dataset": model.olat_dataset, **model.sources, **metadata},
-    )
+__all__ = ["decoded_avatar", "fitted_avatar"]
 
 
 def fitted_avatar(

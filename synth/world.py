@@ -171,6 +171,44 @@ def write_subject_answers(folder: Path, template: HeadTemplate, subject) -> None
         write_exr(folder / f"{name}.exr", np.repeat(values[..., None], 3, axis=-1))
 
 
+def olat_answer_images(preset: Preset, scene, camera, lights: PointLights) -> np.ndarray:
+    """(L, H, W, 3) float32 true OLAT images of ``scene`` in a native ``camera``, one per answer light."""
+    return render(scene, truth_camera(camera), lights, per_light=True, supersampling=preset.supersampling).image
+
+
+def render_subject_olat(
+    world: Path, dataset: str, subject: str, cameras: list[str], preset: Preset | None = None
+) -> dict[str, np.ndarray]:
+    """True OLAT images of any subject of a generated world, rendered as the held-out answers are.
+
+    Held-out subjects have theirs on disk (``answers/<dataset>/olat``); training subjects do not, and
+    this regenerates them from the world's seed (the same people, textures and answer lights).
+    ``preset``: the world's preset when it is not one of the named ones (world.json records the name).
+    Returns camera -> (L, H, W, 3) float32 under the answer lights.
+    """
+    world = Path(world)
+    description_path = world / "world.json"
+    if not description_path.is_file():
+        raise FileNotFoundError(f"{description_path}: not a generated world; its subjects cannot be re-rendered")
+    description = json.loads(description_path.read_text())
+    if preset is None:
+        try:
+            preset = resolve_preset(description["preset"])
+        except (KeyError, ValueError) as error:
+            raise ValueError(f"{description_path}: {error}; pass the world's preset") from None
+    template = make_template(preset.template_segments)
+    people = {p.name: p for p in make_subjects(preset, template, dataset, int(description["seed"]))[0]}
+    if subject not in people:
+        raise ValueError(f"{world}: world dataset {dataset!r} has no subject {subject!r}; it has {sorted(people)}")
+    truth = DatasetTruth.load(world / "answers" / dataset / "truth.json")
+    missing = [c for c in cameras if c not in truth.cameras]
+    if missing:
+        raise ValueError(f"{world}: world dataset {dataset!r} has no camera(s) {missing}")
+    lights, _ = answer_lights(preset)
+    scene = Scene.from_subject(template, people[subject])
+    return {c: olat_answer_images(preset, scene, truth.cameras[c], lights) for c in cameras}
+
+
 def write_relighting_answers(
     folder: Path,
     preset: Preset,
@@ -187,10 +225,7 @@ def write_relighting_answers(
         (name, olat_relight_weights(env, lights.positions, lights.intensities)) for name, env in envmaps
     ]
     for camera in truth.cameras.values():
-        result = render(
-            scene, truth_camera(camera), lights, per_light=True, supersampling=preset.supersampling
-        )
-        olat = result.image  # (L, H, W, 3)
+        olat = olat_answer_images(preset, scene, camera, lights)
         for k in range(len(olat)):
             write_exr(folder / "olat" / subject.name / camera.name / f"{k:03d}.exr", olat[k], half=True)
         for name, w in weights:

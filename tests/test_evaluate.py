@@ -118,17 +118,21 @@ def write_sphere_answers(root: Path, paths: dict) -> Path:
             }
         (answers / dataset).mkdir()
         (answers / dataset / "truth.json").write_text(json.dumps({"cameras": cameras, "head_poses": []}))
-        subject = next(s for s, v in split.items() if v == "test")
-        for c in range(4):
-            olat = [true_olat_image(subject, c, k)[0] for k in range(4)]
-            for k, image in enumerate(olat):
-                path = answers / dataset / "olat" / subject / f"cam{c:02d}" / f"{k:03d}.exr"
+        # OLAT answers of every subject (a generated world renders training subjects' on demand), env-map
+        # answers of the held-out ones.
+        for subject, role in split.items():
+            for c in range(4):
+                olat = [true_olat_image(subject, c, k)[0] for k in range(4)]
+                for k, image in enumerate(olat):
+                    path = answers / dataset / "olat" / subject / f"cam{c:02d}" / f"{k:03d}.exr"
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    save_envmap(path, torch.from_numpy(image).permute(2, 0, 1))
+                if role != "test":
+                    continue
+                relit = np.einsum("lc,lhwc->hwc", weights, np.stack(olat)).astype(np.float32)
+                path = answers / dataset / "relit" / subject / f"cam{c:02d}" / "env_000.exr"
                 path.parent.mkdir(parents=True, exist_ok=True)
-                save_envmap(path, torch.from_numpy(image).permute(2, 0, 1))
-            relit = np.einsum("lc,lhwc->hwc", weights, np.stack(olat)).astype(np.float32)
-            path = answers / dataset / "relit" / subject / f"cam{c:02d}" / "env_000.exr"
-            path.parent.mkdir(parents=True, exist_ok=True)
-            save_envmap(path, torch.from_numpy(relit).permute(2, 0, 1))
+                save_envmap(path, torch.from_numpy(relit).permute(2, 0, 1))
     return root
 
 
@@ -188,12 +192,14 @@ def test_tables_and_report(evaluated):
     table2 = results["table2"]["subjects"]["d1/s02"]
     assert table2["weight_fit_max_residual"] < 1e-2
     assert set(table2["metrics"]) == {"multi_view", "single_image"}
-    table3 = results["table3"]["subjects"]["d2/f01"]
-    assert set(table3["metrics"]) == {"with_lighting_code", "without_lighting_code"}
-    # Different lighting codes give different fits, so the ablation measures something.
-    assert (
-        table3["metrics"]["with_lighting_code"]["rmse"] != table3["metrics"]["without_lighting_code"]["rmse"]
-    )
+    # The ablation on the stage-1 training subject (decoded) and on the held-out one (fitted).
+    for table, subject in (("table3", "d2/f00"), ("table3_fitted", "d2/f01")):
+        entry = results[table]["subjects"][subject]
+        assert set(entry["metrics"]) == {"with_lighting_code", "without_lighting_code"}
+        assert entry["metrics"]["with_lighting_code"]["images"] == 4 * 3
+        # Different lighting codes give different relit images, so the ablation measures something.
+        assert entry["metrics"]["with_lighting_code"]["rmse"] != entry["metrics"]["without_lighting_code"]["rmse"]
+    assert results["table3"]["subjects"]["d2/f00"]["seen_in_training"] == ["stage 1"]
     saved = json.loads((out / "evaluation.json").read_text())
     assert saved["table1"]["mean"]["two_stage"]["psnr"] == pytest.approx(
         table1["metrics"]["two_stage"]["psnr"]
@@ -201,7 +207,7 @@ def test_tables_and_report(evaluated):
     assert (evaluated["root"] / "bench" / "evaluation.json").read_text() == (
         out / "evaluation.json"
     ).read_text()
-    assert len(saved["goals"]) == 3
+    assert len(saved["goals"]) == 4
     report = (out / "report.md").read_text()
     assert "synthetic world" in report and "paper's level" in report and "LPIPS" in report
     for grid in [g for names in saved["grids"].values() for g in names]:
@@ -210,7 +216,8 @@ def test_tables_and_report(evaluated):
     assert {Path(g).name for names in saved["grids"].values() for g in names} == {
         "table1_d1_s02.png",
         "table2_d1_s02.png",
-        "table3_d2_f01.png",
+        "table3_d2_f00.png",
+        "table3_fitted_d2_f01.png",
     }
 
 

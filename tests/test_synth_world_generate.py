@@ -126,3 +126,26 @@ def test_cli_refuses_bad_datasets_and_previews_a_world(nano_world, tmp_path):
     assert image.size[1] >= 4 * 192  # one row per dataset
     result = runner.invoke(COMMANDS["synth-preview"], [str(tmp_path), "--out", str(sheet)])
     assert result.exit_code != 0 and "world.json" in result.output
+
+
+def test_training_subjects_are_rendered_like_the_held_out_answers(nano_world):
+    """The evaluation renders training subjects' OLAT truth on demand; for a held-out subject the same
+    function reproduces the answers on disk, so both come from the same people and lights."""
+    import numpy as np
+    from relightanyone.model.eval_truth import WorldAnswers, read_answer_image
+    from relightanyone.synth.world import render_subject_olat
+
+    answers = WorldAnswers(nano_world)
+    held_out = answers.test_subjects("d2")[0]
+    camera = sorted(answers.cameras("d2"))[0]
+    rendered = render_subject_olat(nano_world, "d2", held_out, [camera], preset=nano_preset())[camera]
+    for light in range(len(rendered)):
+        on_disk = read_answer_image(answers.olat_path("d2", held_out, camera, light))
+        np.testing.assert_allclose(rendered[light], on_disk, rtol=2e-3, atol=2e-3)  # answers are half floats
+    training = next(s for s, split in answers.splits["d2"].items() if split == "train")
+    other = render_subject_olat(nano_world, "d2", training, [camera], preset=nano_preset())[camera]
+    assert other.shape == rendered.shape and not np.allclose(other, rendered)
+    with pytest.raises(ValueError, match="pass the world's preset"):
+        render_subject_olat(nano_world, "d2", training, [camera])
+    with pytest.raises(ValueError, match="no subject"):
+        render_subject_olat(nano_world, "d2", "nobody", [camera], preset=nano_preset())
