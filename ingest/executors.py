@@ -25,6 +25,7 @@ WORKER_PRELOAD = (
     "relightanyone.format.shards",
     "cv2",
     "trimesh",
+    "torch",  # calibration readers return tensors; importing it in every worker costs seconds
 )
 
 

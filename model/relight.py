@@ -97,7 +97,8 @@ def activate_relight_params(
         mesh_normals: (B, N, 3) unit normals n̂ of the mesh at each Gaussian.
         sh_order: n, with K = (n + 1)².
         albedo_scale: (3,) the radiometric unit of the albedo (image units per rig-light unit), so the raw
-            output stays near 1 whatever the dataset's light calibration is; ones when None.
+            output stays near 1 whatever the dataset's light calibration is, or (B, N, 3) a per-Gaussian
+            base the raw output multiplies (stage 2: the input texture in albedo units); ones when None.
     """
     count = sh_count(sh_order)
     expected = view_independent_channels(sh_order)
@@ -235,7 +236,7 @@ def albedo_prior_loss(
 ) -> torch.Tensor:
     """λ_ρ term: mean squared distance of the albedo from its prior, both in ``unit`` (3,) when given.
 
-    albedo (B, N, 3), prior (N, 3) -> (B,). Measuring in the albedo's unit keeps the term's size independent
+    albedo (B, N, 3), prior (N, 3) or (B, N, 3) -> (B,). Measuring in the albedo's unit keeps the term's size independent
     of the dataset's light calibration.
     """
     if unit is not None:

@@ -5,7 +5,10 @@ Input, in UV space (B, 6, S, S): the full-on colour of every Gaussian from the f
 invalid texels are zero. A shared encoder E goes down to an 8×8 bottleneck, keeping one skip per
 resolution. Two decoders go back up with those skips:
 
-* ``D_ci`` (view-independent): albedo ρ, diffuse SH transfer d, roughness σ;
+* ``D_ci`` (view-independent): albedo ρ, diffuse SH transfer d, roughness σ. ρ is predicted as a positive
+  factor on the Gaussian's own full-on colour in albedo units (an input-to-output skip), so it follows
+  the subject it is given; predicted directly, a network trained on a few OLAT subjects learns one
+  albedo for everyone and ignores its colour input;
 * ``D_cv`` (view-dependent): the bottleneck concatenated with the view direction (camera position to head
   centre, tiled over the 8×8 map), to visibility v and normal residual δn.
 
@@ -23,6 +26,7 @@ import torch.nn.functional as F
 from relightanyone.model.decoders import LEAKY_SLOPE, START_RESOLUTION
 from relightanyone.model.gaussians import TexelBinding, gather_texels
 from relightanyone.model.relight import (
+    INITIAL_ALBEDO,
     VIEW_DEPENDENT_CHANNELS,
     RelightParams,
     activate_relight_params,
@@ -199,6 +203,9 @@ class Stage2Model(nn.Module):
         self.register_buffer("head_centre", torch.as_tensor(head_centre, dtype=torch.float32).clone())
         # Image units per unit of albedo x rig light: set by the trainer from the data, saved with the weights.
         self.register_buffer("albedo_scale", torch.ones(3))
+        # Albedo per unit of full-on colour (one over the full-on rig's mean diffuse light): D_ci predicts a
+        # positive factor on colour x albedo_per_colour, so the albedo follows the colours it is given.
+        self.register_buffer("albedo_per_colour", torch.ones(3))
         self.unet = RelightingUNet(binding.uv_size, sh_order, base_channels, max_channels)
 
     def input_maps(self, colours: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
@@ -224,10 +231,13 @@ class Stage2Model(nn.Module):
         view_independent, view_dependent = self.unet(
             self.input_maps(colours, positions), view_directions(camera_positions, self.head_centre)
         )
+        # ρ = colour · albedo_per_colour · softplus(raw) / softplus(bias): the untrained decoder returns the
+        # input texture in albedo units, and training learns the (mostly shading) factor away from it.
+        texture_albedo = colours.clamp(min=0.0) * self.albedo_per_colour / INITIAL_ALBEDO
         return activate_relight_params(
             gather_texels(view_independent, self.binding),
             gather_texels(view_dependent, self.binding),
             mesh_normals,
             self.sh_order,
-            self.albedo_scale,
+            texture_albedo,
         )

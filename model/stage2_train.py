@@ -12,8 +12,10 @@ them. Two modes:
 
 Objective per sample: ``10 L1 + 0.2 (1 − SSIM)`` on the masked relit render, plus ``0.01 c−``
 (negative diffuse), ``0.01 mono`` (monochrome transfer), ``λ_n ‖δn‖²`` (1 → 0) and, in stage-2 mode,
-``λ_ρ ‖ρ − ρ_prior‖²`` (10 → 0.01), with ρ_prior the mean full-on texture of the OLAT subjects divided by
-the full-on rig's mean diffuse irradiance factor (so it is in albedo units). Adam, lr 5e-4.
+``λ_ρ ‖ρ − ρ_prior‖²`` (10 → 0.01), with ρ_prior the sample's own full-on texture (stage 2's input colours)
+divided by the full-on rig's mean diffuse irradiance factor (so it is in albedo units). A prior shared by
+all subjects (their mean texture) lets the network ignore its colour input and predict one albedo for
+everyone; the per-subject prior ties ρ to the input from the first iteration. Adam, lr 5e-4.
 
 Run folder: ``run.json``, ``checkpoint.pt`` (atomic, resumable), ``metrics.json``, ``tensorboard/``.
 """
@@ -278,8 +280,9 @@ class Stage2Trainer:
             self.preset.base_channels,
             self.preset.max_channels,
         ).to(self.device)
-        self.albedo_prior = self._albedo_prior()
-        self.trainable.albedo_scale.copy_(self.albedo_prior.mean(dim=0).clamp(min=1e-6))
+        self.albedo_per_colour, mean_prior = self._albedo_prior()
+        self.trainable.albedo_scale.copy_(mean_prior.mean(dim=0).clamp(min=1e-6))
+        self.trainable.albedo_per_colour.copy_(self.albedo_per_colour)
 
     def _build_single_stage(self) -> None:
         from relightanyone.render.mesh import load_obj
@@ -306,7 +309,7 @@ class Stage2Trainer:
             binding,
             len(self.frames.subjects),
         ).to(self.device)
-        self.albedo_prior = None
+        self.albedo_per_colour = None
         self.trainable.albedo_scale.copy_(self._albedo_scale_from_images())
 
     def _diffuse_factor(self, vertices: torch.Tensor, binding, rig) -> torch.Tensor:
@@ -327,14 +330,14 @@ class Stage2Trainer:
         return factor.clamp(min=1e-12)
 
     @torch.no_grad()
-    def _albedo_prior(self) -> torch.Tensor:
-        """(N, 3) mean full-on texture of the OLAT subjects over the rig's mean diffuse factor Σ d_lambert L."""
+    def _albedo_prior(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(3,) albedo per full-on colour: one over the full-on rig's mean diffuse factor Σ d_lambert L on
+        the OLAT subjects; and (N, 3) the subjects' mean texture in albedo units (sets the albedo unit)."""
         subjects = sorted({v.subject_index for v in self.frames.full_on + self.frames.olat})
         index = torch.tensor(subjects, device=self.device)
         vertices, gaussians = self.stage1(index, torch.full_like(index, self.lighting_index))
-        return gaussians.colours.mean(dim=0) / self._diffuse_factor(
-            vertices, self.stage1.binding, self.frames.full_on_rig
-        )
+        per_colour = 1.0 / self._diffuse_factor(vertices, self.stage1.binding, self.frames.full_on_rig)
+        return per_colour, gaussians.colours.mean(dim=0) * per_colour
 
     @torch.no_grad()
     def _albedo_scale_from_images(self, views: int = 16) -> torch.Tensor:
@@ -420,11 +423,12 @@ class Stage2Trainer:
             + normal_lambda * terms["normal"]
         )
         logged = {"normal_lambda": normal_lambda}
-        if self.albedo_prior is not None:
+        if self.albedo_per_colour is not None:
             albedo_lambda = annealed_weight(
                 iteration, weights.albedo_start, weights.albedo_end, self.preset.albedo_anneal_iterations
             )
-            terms["albedo"] = albedo_prior_loss(params.albedo, self.albedo_prior, self.trainable.albedo_scale)
+            prior = gaussians.colours.detach() * self.albedo_per_colour  # (B, N, 3): each sample's own texture
+            terms["albedo"] = albedo_prior_loss(params.albedo, prior, self.trainable.albedo_scale)
             per_sample = per_sample + albedo_lambda * terms["albedo"]
             logged["albedo_lambda"] = albedo_lambda
         if self.config.single_stage:

@@ -95,19 +95,29 @@ def test_the_expansion_is_a_valid_synthetic_olat_dataset_with_every_pattern(worl
     assert expand_dataset(plan, progress=False)["up_to_date"]
 
 
-def test_relit_olat_images_of_the_held_out_subject_follow_the_truth(expanded):
+@pytest.mark.parametrize(
+    "subject, bound",
+    [
+        # Decoded from its stage-1 code: stage 2 sees this subject's own colours (a stage 2 that predicts
+        # one albedo for everyone errs by 0.40 of the truth here).
+        ("f00", 0.35),
+        # Fitted: its albedo and the estimated scene light share an unknown colour and scale.
+        ("f01", 0.6),
+    ],
+)
+def test_relit_olat_images_follow_the_truth(expanded, subject, bound):
     _, _, folder = expanded
     data = NormalizedDataset(folder)
     errors, black, correlations = [], [], []
     for camera in range(4):
         for light in range(len(LIGHTS)):
-            _, image, _ = data.decoded(f"{NAME}/f01/000000/cam{camera:02d}/olat-{light:03d}")
-            truth, mask = true_olat_image("f01", camera, light)
+            _, image, _ = data.decoded(f"{NAME}/{subject}/000000/cam{camera:02d}/olat-{light:03d}")
+            truth, mask = true_olat_image(subject, camera, light)
             errors.append(np.abs(image - truth)[mask].mean())
             black.append(np.abs(truth)[mask].mean())
             correlations.append(np.corrcoef(image[mask].ravel(), truth[mask].ravel())[0, 1])
     # A black image errs by the mean truth; an image lit from the wrong side correlates negatively.
-    assert np.mean(errors) < 0.5 * np.mean(black), (np.mean(errors), np.mean(black))
+    assert np.mean(errors) < bound * np.mean(black), (np.mean(errors), np.mean(black))
     assert np.mean(correlations) > 0.8, correlations
 
 

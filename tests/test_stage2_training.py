@@ -168,9 +168,7 @@ def test_stage2_trains_with_stage1_frozen_and_lowers_the_loss(olat_world, tmp_pa
     )
     assert trainer.frames.subjects == ["olat/s00", "olat/s01"]
     assert len(trainer.frames.olat) == 2 * 3 * 4 and len(trainer.frames.full_on) == 2 * 3
-    assert (
-        trainer.albedo_prior.shape == (trainer.stage1.binding.count, 3) and (trainer.albedo_prior > 0).all()
-    )
+    assert trainer.albedo_per_colour.shape == (3,) and (trainer.albedo_per_colour > 0).all()
     stage1_before = {k: v.clone() for k, v in trainer.stage1.state_dict().items()}
     batches = [trainer.batch(i) for i in range(3)]
     # An OLAT batch lights one rig light per sample; a full-on sample has all four.
@@ -189,6 +187,17 @@ def test_stage2_trains_with_stage1_frozen_and_lowers_the_loss(olat_world, tmp_pa
     assert checkpoint["iteration"] == 10 and checkpoint["single_stage"] is False
     info = json.loads((out / "run.json").read_text())
     assert info["stage"] == "stage2" and info["frames"] == {"full_on": 6, "olat": 24} and info["lights"] == 4
+    # The albedo follows the colours stage 2 is given (a shared prior let it predict one albedo for all).
+    from relightanyone.model.relight import camera_centres
+    from relightanyone.model.stage2 import texel_mesh_normals
+
+    subjects = batches[0]["subject_index"]
+    with torch.no_grad():
+        vertices, gaussians = trainer.stage1(subjects, torch.full_like(subjects, trainer.lighting_index))
+        inputs = (gaussians.means, texel_mesh_normals(vertices, trainer.stage1.binding), camera_centres(batches[0]["w2c"]))
+        albedo = trainer.trainable(gaussians.colours, *inputs).albedo
+        brighter = trainer.trainable(gaussians.colours * 2.0, *inputs).albedo
+    assert float(brighter.mean() / albedo.mean()) > 1.5
 
 
 def test_resumed_stage2_run_ends_with_the_uninterrupted_weights(olat_world, tmp_path):
@@ -219,7 +228,7 @@ def test_single_stage_flag_trains_through_the_same_trainer(olat_world, tmp_path)
         stage1_preset=tiny_stage1_preset(crop_size=SIZE),
     )
     trainer = Stage2Trainer(config)
-    assert trainer.albedo_prior is None and not hasattr(trainer, "stage1")
+    assert trainer.albedo_per_colour is None and not hasattr(trainer, "stage1")
     batches = [trainer.batch(i) for i in range(3)]
     before = _fixed_batch_losses(trainer, batches)
     metrics = trainer.train()
