@@ -493,6 +493,23 @@ def decoded_avatar(model, subject_index: int, tracked_vertices: torch.Tensor | N
     with torch.no_grad():
         z_id = stage1.identity_codes[subject_index : subject_index + 1].detach()
         vertices, gaussians = decode_codes(stage1, z_id, model.lighting_code.reshape(1, -1))
+    return avatar_from_decoded(
+        vertices,
+        gaussians,
+        tracked_vertices,
+        stage1,
+        model.stage2,
+        model,
+        (model.full_on_rig or model.rig).intensities,
+        {"mesh": "decoded", "olat_dataset": model.olat_dataset, **model.sources, **metadata},
+    )
+
+
+def avatar_from_decoded(
+    vertices, gaussians, tracked_vertices, stage1, stage2, model, scene_intensities, metadata
+) -> FittedAvatar:
+    """A :class:`FittedAvatar` holding copies of one decoded sample: vertices (1, V, 3) and Gaussians
+    (batch 1) of ``stage1``, a copy of ``stage2``, the rig of ``model`` and the (L, 3) scene intensities."""
     return FittedAvatar(
         means=gaussians.means[0].clone(),
         quats=gaussians.quats[0].clone(),
@@ -502,10 +519,10 @@ def decoded_avatar(model, subject_index: int, tracked_vertices: torch.Tensor | N
         vertices=vertices[0].clone(),
         tracked_vertices=None if tracked_vertices is None else tracked_vertices.clone(),
         binding=stage1.binding,
-        stage2=copy.deepcopy(model.stage2),
+        stage2=copy.deepcopy(stage2),
         stage1_preset=stage1.preset,
         stage2_preset=model.stage2_preset,
         rig=model.rig,
-        scene_intensities=(model.full_on_rig or model.rig).intensities.detach().clone(),
-        metadata={"mesh": "decoded", "olat_dataset": model.olat_dataset, **model.sources, **metadata},
+        scene_intensities=scene_intensities.detach().clone(),
+        metadata=metadata,
     )

@@ -219,9 +219,7 @@ def answer_masks(answers: WorldAnswers, frame: AnswerFrame) -> dict[str, np.ndar
     lights = len(answers.answer_lights().positions)
     masks = {}
     for camera, *_ in frame.rows:
-        total = sum(
-            answers.olat_image(frame.world_dataset, frame.subject, camera, k) for k in range(lights)
-        )
+        total = sum(answers.olat_image(frame.world_dataset, frame.subject, camera, k) for k in range(lights))
         covered = (total.sum(axis=-1) > ANSWER_MASK_THRESHOLD).astype(np.float32)
         warped = _warp(frame, camera, covered[..., None])[..., 0]
         # Only pixels fully inside the subject: the warp blends edge pixels with the black background.

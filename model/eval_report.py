@@ -148,7 +148,10 @@ def goals(results: dict, metrics: list[str]) -> dict[str, bool | None]:
             table3, "with_lighting_code", "without_lighting_code", metrics
         ),
         "the lighting code still helps after fitting held-out flat-lit subjects (Table 3b)": beats(
-            results.get("table3_fitted", {}).get("mean", {}), "with_lighting_code", "without_lighting_code", metrics
+            results.get("table3_fitted", {}).get("mean", {}),
+            "with_lighting_code",
+            "without_lighting_code",
+            metrics,
         ),
     }
 
@@ -217,11 +220,7 @@ def write_report(out: Path, results: dict, tables: dict, input_images: dict[str,
     metrics = [
         m
         for m in METRIC_ORDER
-        if any(
-            m in row
-            for t in TABLES
-            for row in results.get(t, {}).get("mean", {}).values()
-        )
+        if any(m in row for t in TABLES for row in results.get(t, {}).get("mean", {}).values())
     ]
     checked = goals(results, [m for m in metrics if m != "lpips"] + (["lpips"] if "lpips" in metrics else []))
     results["goals"] = {k: v for k, v in checked.items()}

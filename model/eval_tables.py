@@ -382,9 +382,10 @@ class Evaluation:
         expansion renders), so nothing can absorb the code's effect. ``table3_fitted``: held-out subjects
         fitted on their full-on frame; fitting also estimates the scene lighting and finetunes stage 1.
         """
+        from relightanyone.model.avatar import decoded_avatar
+
         from relightanyone.format.reader import NormalizedDataset
         from relightanyone.format.schema import make_mesh_key
-        from relightanyone.model.avatar import decoded_avatar
 
         stage1_names = self._stage1_dataset_names()
         stage1_subjects = self._stage1_subjects()
@@ -403,39 +404,47 @@ class Evaluation:
             known = sorted(s.split("/", 1)[1] for s in stage1_subjects if s.split("/", 1)[0] == dataset.name)
             for subject in known[: self.settings.subjects_per_dataset]:
                 cameras, _ = subject_cameras(path, subject, self.settings.max_views)
-                cases, source = self.olat_cases(world_name, subject, cameras)
                 index = stage1_subjects.index(f"{dataset.name}/{subject}")
                 frame = min(dataset.row(k).frame for k in dataset.select(subjects=subject, patterns="full"))
                 tracked = dataset.meshes().get(make_mesh_key(subject, frame))
-                tracked = None if tracked is None else torch.as_tensor(np.asarray(tracked), dtype=torch.float32)
+                tracked = (
+                    None if tracked is None else torch.as_tensor(np.asarray(tracked), dtype=torch.float32)
+                )
                 self.inputs_images.setdefault(f"{world_name}/{subject}", self._first_image(path, subject))
-                decoded[f"{world_name}/{subject}"] = {
-                    "source": source,
-                    "seen_in_training": self.seen_in_training(world_name, subject),
-                    "cameras": cameras,
-                    "lights": [c.label for c in cases],
-                    "rows": {
-                        "with_lighting_code": compare(decoded_avatar(self.model, index, tracked, {}), cases, self.lpips),
-                        "without_lighting_code": compare(decoded_avatar(without, index, tracked, {}), cases, self.lpips),
-                    },
-                }
+                decoded[f"{world_name}/{subject}"] = self._ablation_entry(
+                    world_name,
+                    subject,
+                    cameras,
+                    decoded_avatar(self.model, index, tracked, {}),
+                    decoded_avatar(without, index, tracked, {}),
+                )
             for subject in test_subjects(self.inputs, world_name, self.settings.subjects_per_dataset):
                 cameras, _ = subject_cameras(path, subject, self.settings.max_views)
-                cases, source = self.olat_cases(world_name, subject, cameras)
-                with_code = self.fit(world_name, subject, cameras, "two-stage with z_l (OLAT code)")
-                without_code = self.fit(world_name, subject, cameras, "two-stage own z_l", model=without)
-                fitted[f"{world_name}/{subject}"] = {
-                    "source": source,
-                    "seen_in_training": self.seen_in_training(world_name, subject),
-                    "cameras": cameras,
-                    "lights": [c.label for c in cases],
-                    "rows": {
-                        "with_lighting_code": compare(with_code, cases, self.lpips),
-                        "without_lighting_code": compare(without_code, cases, self.lpips),
-                    },
-                }
+                fitted[f"{world_name}/{subject}"] = self._ablation_entry(
+                    world_name,
+                    subject,
+                    cameras,
+                    self.fit(world_name, subject, cameras, "two-stage with z_l (OLAT code)"),
+                    self.fit(world_name, subject, cameras, "two-stage own z_l", model=without),
+                )
         self.tables["table3"] = decoded
         self.tables["table3_fitted"] = fitted
+
+    def _ablation_entry(
+        self, world_name: str, subject: str, cameras: list[str], with_code, without_code
+    ) -> dict:
+        """A Table-3 entry: both avatars relit under the rig lights and compared with the subject's truth."""
+        cases, source = self.olat_cases(world_name, subject, cameras)
+        return {
+            "source": source,
+            "seen_in_training": self.seen_in_training(world_name, subject),
+            "cameras": cameras,
+            "lights": [c.label for c in cases],
+            "rows": {
+                "with_lighting_code": compare(with_code, cases, self.lpips),
+                "without_lighting_code": compare(without_code, cases, self.lpips),
+            },
+        }
 
     def _first_image(self, path: Path, subject: str) -> np.ndarray:
         """(H, W, 3) the subject's first full-on row (the input column of the image grids)."""

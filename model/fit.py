@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from relightanyone.model.avatar import FittedAvatar
+from relightanyone.model.avatar import FittedAvatar, avatar_from_decoded
 from relightanyone.model.fit_views import FitViews, load_fit_views
 from relightanyone.model.gaussians import Gaussians, assemble_gaussians
 from relightanyone.model.losses import (
@@ -441,22 +441,15 @@ class Fitter:
             **self.model.sources,
         }
         info.update(metadata or {})
-        tracked = self.views.tracked_vertices
-        return FittedAvatar(
-            means=gaussians.means[0].clone(),
-            quats=gaussians.quats[0].clone(),
-            scales=gaussians.scales[0].clone(),
-            opacities=gaussians.opacities[0].clone(),
-            colours=gaussians.colours[0].clone(),
-            vertices=vertices[0].clone(),
-            tracked_vertices=None if tracked is None else tracked.clone(),
-            binding=self.stage1.binding,
-            stage2=copy.deepcopy(self.stage2),
-            stage1_preset=self.stage1.preset,
-            stage2_preset=self.model.stage2_preset,
-            rig=self.model.rig,
-            scene_intensities=self.light_intensities().detach().clone(),
-            metadata=info,
+        return avatar_from_decoded(
+            vertices,
+            gaussians,
+            self.views.tracked_vertices,
+            self.stage1,
+            self.stage2,
+            self.model,
+            self.light_intensities(),
+            info,
         )
 
 

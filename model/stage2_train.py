@@ -427,7 +427,9 @@ class Stage2Trainer:
             albedo_lambda = annealed_weight(
                 iteration, weights.albedo_start, weights.albedo_end, self.preset.albedo_anneal_iterations
             )
-            prior = gaussians.colours.detach() * self.albedo_per_colour  # (B, N, 3): each sample's own texture
+            prior = (
+                gaussians.colours.detach() * self.albedo_per_colour
+            )  # (B, N, 3): each sample's own texture
             terms["albedo"] = albedo_prior_loss(params.albedo, prior, self.trainable.albedo_scale)
             per_sample = per_sample + albedo_lambda * terms["albedo"]
             logged["albedo_lambda"] = albedo_lambda

@@ -173,7 +173,9 @@ def write_subject_answers(folder: Path, template: HeadTemplate, subject) -> None
 
 def olat_answer_images(preset: Preset, scene, camera, lights: PointLights) -> np.ndarray:
     """(L, H, W, 3) float32 true OLAT images of ``scene`` in a native ``camera``, one per answer light."""
-    return render(scene, truth_camera(camera), lights, per_light=True, supersampling=preset.supersampling).image
+    return render(
+        scene, truth_camera(camera), lights, per_light=True, supersampling=preset.supersampling
+    ).image
 
 
 def render_subject_olat(
@@ -189,7 +191,9 @@ def render_subject_olat(
     world = Path(world)
     description_path = world / "world.json"
     if not description_path.is_file():
-        raise FileNotFoundError(f"{description_path}: not a generated world; its subjects cannot be re-rendered")
+        raise FileNotFoundError(
+            f"{description_path}: not a generated world; its subjects cannot be re-rendered"
+        )
     description = json.loads(description_path.read_text())
     if preset is None:
         try:
@@ -199,7 +203,9 @@ def render_subject_olat(
     template = make_template(preset.template_segments)
     people = {p.name: p for p in make_subjects(preset, template, dataset, int(description["seed"]))[0]}
     if subject not in people:
-        raise ValueError(f"{world}: world dataset {dataset!r} has no subject {subject!r}; it has {sorted(people)}")
+        raise ValueError(
+            f"{world}: world dataset {dataset!r} has no subject {subject!r}; it has {sorted(people)}"
+        )
     truth = DatasetTruth.load(world / "answers" / dataset / "truth.json")
     missing = [c for c in cameras if c not in truth.cameras]
     if missing:

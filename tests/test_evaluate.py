@@ -198,7 +198,10 @@ def test_tables_and_report(evaluated):
         assert set(entry["metrics"]) == {"with_lighting_code", "without_lighting_code"}
         assert entry["metrics"]["with_lighting_code"]["images"] == 4 * 3
         # Different lighting codes give different relit images, so the ablation measures something.
-        assert entry["metrics"]["with_lighting_code"]["rmse"] != entry["metrics"]["without_lighting_code"]["rmse"]
+        assert (
+            entry["metrics"]["with_lighting_code"]["rmse"]
+            != entry["metrics"]["without_lighting_code"]["rmse"]
+        )
     assert results["table3"]["subjects"]["d2/f00"]["seen_in_training"] == ["stage 1"]
     saved = json.loads((out / "evaluation.json").read_text())
     assert saved["table1"]["mean"]["two_stage"]["psnr"] == pytest.approx(

@@ -194,7 +194,11 @@ def test_stage2_trains_with_stage1_frozen_and_lowers_the_loss(olat_world, tmp_pa
     subjects = batches[0]["subject_index"]
     with torch.no_grad():
         vertices, gaussians = trainer.stage1(subjects, torch.full_like(subjects, trainer.lighting_index))
-        inputs = (gaussians.means, texel_mesh_normals(vertices, trainer.stage1.binding), camera_centres(batches[0]["w2c"]))
+        inputs = (
+            gaussians.means,
+            texel_mesh_normals(vertices, trainer.stage1.binding),
+            camera_centres(batches[0]["w2c"]),
+        )
         albedo = trainer.trainable(gaussians.colours, *inputs).albedo
         brighter = trainer.trainable(gaussians.colours * 2.0, *inputs).albedo
     assert float(brighter.mean() / albedo.mean()) > 1.5

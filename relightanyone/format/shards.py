@@ -187,9 +187,7 @@ class PartWriter:
         self._images.finish()
         atomic_write_bytes(
             self.tmp_dir / "offsets.json",
-            json.dumps(
-                {"keys": self._keys, "offsets": self._images.offsets, "index": self._index}
-            ).encode(),
+            json.dumps({"keys": self._keys, "offsets": self._images.offsets, "index": self._index}).encode(),
         )
         meshes = [self._meshes[k] for k in sorted(self._meshes)]
         write_table_file(self.tmp_dir / MESHES_NAME, pa.Table.from_pylist(meshes, schema=MESH_SCHEMA))
@@ -346,7 +344,11 @@ class ShardWriter:
                 values = [batch.column(name)[0].as_py() for name in INDEX_COLUMNS]
             batch_offset = writer.write_message(message)
             index_rows.append(
-                {**dict(zip(INDEX_COLUMNS, values)), "shard": len(shards), "batch_offset": batch_offset}
+                {
+                    **dict(zip(INDEX_COLUMNS, values, strict=True)),
+                    "shard": len(shards),
+                    "batch_offset": batch_offset,
+                }
             )
             if bar:
                 bar.update()
