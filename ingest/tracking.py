@@ -83,7 +83,7 @@ def read_obj_vertices(path: Path, expected: int | None = None) -> np.ndarray:
     try:
         # One C-level parse of all numbers; records with a w or colour column take the per-line path.
         numbers = np.array(" ".join(lines).split(), dtype=np.float64)
-        if numbers.size == 3 * len(lines) and all(len(line.split()) == 3 for line in lines[:1]):
+        if numbers.size == 3 * len(lines) and len(lines[0].split()) == 3:
             vertices = numbers.reshape(-1, 3)
         else:
             vertices = np.asarray([line.split()[:3] for line in lines], dtype=np.float64)
