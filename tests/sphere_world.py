@@ -62,9 +62,10 @@ def lambert_sphere(scale, albedo, K, w2c, positions, intensities):
     return image, mask
 
 
-def sphere_row(dataset: str, subject: str, camera: int, pattern: str, split: str, image, mask):
-    """The normalized image row of one rendered sphere view (frame 0, camera ``cam{camera:02d}``)."""
-    K, w2c = sphere_camera(camera)
+def sphere_row(dataset: str, subject: str, camera: int, pattern: str, split: str, image, mask, pose=None):
+    """The normalized image row of one rendered sphere view (frame 0, camera ``cam{camera:02d}``); ``pose``
+    (K, w2c) when the view is not :func:`sphere_camera`'s."""
+    K, w2c = pose or sphere_camera(camera)
     source = f"{subject}/{pattern}/cam{camera:02d}.exr"
     return build_image_row(
         dataset=dataset,

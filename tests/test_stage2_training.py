@@ -6,7 +6,6 @@ with one OLAT frame per light and one full-on frame per subject, plus ``lights.a
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
@@ -17,45 +16,22 @@ from click.testing import CliRunner
 from relightanyone.model.checkpoint import load_checkpoint
 from relightanyone.model.stage1 import Stage1Config, train_stage1
 from relightanyone.model.stage2_train import Stage2Config, Stage2Trainer
+from sphere_world import LIGHTS, SIZE, lambert_sphere, sphere_camera, sphere_row
 from sphere_world import tiny_stage2_preset as sphere_tiny_stage2_preset
-from stage1_world import RADIUS, sphere_obj, tiny_stage1_preset
+from stage1_world import sphere_obj, tiny_stage1_preset
 
-from relightanyone.format.codecs import encode_image, encode_mask
 from relightanyone.format.examples import look_at_w2c
-from relightanyone.format.schema import (
-    DatasetInfo,
-    LightRow,
-    MeshRow,
-    Provenance,
-    build_image_row,
-    fingerprint_config,
-)
+from relightanyone.format.schema import DatasetInfo, LightRow, MeshRow, Provenance, fingerprint_config
 from relightanyone.format.shards import ShardWriter
 
-SIZE = 24
-LIGHT_POSITIONS = np.array([[0.8, 0.4, 0.6], [-0.8, 0.3, 0.6], [0.0, 0.9, 0.5], [0.0, -0.5, 0.9]])
 LIGHT_INTENSITY = 2.5  # radiant intensity: about 2.5 W/m² on the sphere, radiance 0.2-0.5 per light
 
 
-def _render_lambert_sphere(albedo, K, w2c, lights):
-    """Ray-cast the radius-RADIUS sphere at the origin under point lights: (image (H, W, 3), mask (H, W))."""
-    c2w = np.linalg.inv(w2c)
-    y, x = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
-    rays = np.stack([(x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1], np.ones_like(x)], -1) @ c2w[:3, :3].T
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-    origin = c2w[:3, 3]
-    b = rays @ origin
-    disc = b**2 - (origin @ origin - RADIUS**2)
-    mask = disc > 0
-    points = origin + (-b - np.sqrt(np.clip(disc, 0, None)))[..., None] * rays
-    normals = points / RADIUS
-    irradiance = np.zeros(mask.shape)
-    for position in lights:
-        offset = position - points
-        distance_sq = (offset**2).sum(-1)
-        irradiance += LIGHT_INTENSITY * np.clip((normals * offset).sum(-1), 0, None) / distance_sq**1.5
-    image = np.where(mask[..., None], albedo / np.pi * irradiance[..., None], 0.0).astype(np.float32)
-    return image, mask
+def stage2_camera(c: int) -> tuple[np.ndarray, np.ndarray]:
+    """(K, w2c) of camera ``c``: the sphere world's intrinsics, the views 0.6 rad apart."""
+    K, _ = sphere_camera(c)
+    angle = 0.6 * (c - 1)
+    return K, look_at_w2c(0.5 * np.array([np.sin(angle), 0.1, np.cos(angle)]))
 
 
 def write_olat_dataset(root: Path, name: str = "olat", subjects: int = 2, cameras: int = 3) -> Path:
@@ -80,10 +56,10 @@ def write_olat_dataset(root: Path, name: str = "olat", subjects: int = 2, camera
                 intensity_rgb=(LIGHT_INTENSITY,) * 3,
                 pattern=f"olat-{k:03d}",
             )
-            for k, p in enumerate(LIGHT_POSITIONS)
+            for k, p in enumerate(LIGHTS)
         ]
     )
-    K = np.array([[2.2 * SIZE, 0, (SIZE - 1) / 2], [0, 2.2 * SIZE, (SIZE - 1) / 2], [0, 0, 1.0]])
+    rig = np.full((len(LIGHTS), 3), LIGHT_INTENSITY)
     rng = np.random.default_rng(3)
     for s in range(subjects):
         subject = f"s{s:02d}"
@@ -91,33 +67,11 @@ def write_olat_dataset(root: Path, name: str = "olat", subjects: int = 2, camera
         with writer.part(subject) as part:
             part.add_mesh(MeshRow(subject=subject, frame=0, vertices=vertices.astype(np.float32)))
             for c in range(cameras):
-                angle = 0.6 * (c - 1)
-                w2c = look_at_w2c(0.5 * np.array([np.sin(angle), 0.1, np.cos(angle)]))
-                patterns = {"full": LIGHT_POSITIONS} | {
-                    f"olat-{k:03d}": LIGHT_POSITIONS[k : k + 1] for k in range(4)
-                }
+                K, w2c = stage2_camera(c)
+                patterns = {"full": slice(None)} | {f"olat-{k:03d}": slice(k, k + 1) for k in range(4)}
                 for pattern, lights in patterns.items():
-                    image, mask = _render_lambert_sphere(albedo, K, w2c, lights)
-                    source = f"{subject}/{pattern}/cam{c:02d}.exr"
-                    part.add(
-                        build_image_row(
-                            dataset=name,
-                            subject=subject,
-                            frame=0,
-                            camera=f"cam{c:02d}",
-                            pattern=pattern,
-                            split="train",
-                            K=K,
-                            w2c=w2c,
-                            image=encode_image(image),
-                            image_encoding="raw-f16",
-                            mask=encode_mask(mask),
-                            width=SIZE,
-                            height=SIZE,
-                            source=source,
-                            source_sha256=hashlib.sha256(source.encode()).hexdigest(),
-                        )
-                    )
+                    image, mask = lambert_sphere(1.0, albedo, K, w2c, LIGHTS[lights], rig[lights])
+                    part.add(sphere_row(name, subject, c, pattern, "train", image, mask, (K, w2c)))
     writer.commit()
     (dataset_dir / "template.obj").write_text(obj_text)
     return dataset_dir
