@@ -206,37 +206,14 @@ class SingleStageFitter(Fitter):
         )
         return [p for decoder in decoders for p in decoder.parameters()]
 
-    def render(self, view_index: list[int]) -> tuple[torch.Tensor, torch.Tensor, Gaussians]:
-        from relightanyone.render.rasterize import rasterize
-
+    def reflectance(self, view_index: list[int]):
         vertices, gaussians, maps = decode_single_stage(self.stage1, self.z_id)
         w2c, K = self.views.w2c[view_index], self.views.K[view_index]
-        cameras = camera_centres(w2c)
-        count = len(view_index)
-        params = single_stage_reflectance(self.stage1, self.z_id, vertices, maps, cameras)
-        relit = relight(
-            params,
-            gaussians.means.expand(count, -1, -1),
-            cameras,
-            self.run.rig.positions.expand(count, -1, -1),
-            self.light_intensities().expand(count, -1, -1),
-            self.stage1.head_centre,
-            self.run.preset.lobe_normalization,
-            self.run.preset.inverse_square,
-        )
-        height, width = self.views.images.shape[-2:]
-        image, _, _ = rasterize(
-            gaussians.means[0],
-            gaussians.quats[0],
-            gaussians.scales[0],
-            gaussians.opacities[0],
-            relit.colour,
-            w2c,
-            K,
-            width,
-            height,
-        )
-        return image, vertices, gaussians
+        params = single_stage_reflectance(self.stage1, self.z_id, vertices, maps, camera_centres(w2c))
+        return vertices, gaussians, params, w2c, K
+
+    def shading(self):
+        return self.run.rig.positions, self.stage1.head_centre, self.run.preset
 
     @torch.no_grad()
     def avatar(self, metadata: dict | None = None) -> SingleStageAvatar:

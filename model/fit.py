@@ -41,7 +41,7 @@ from relightanyone.model.losses import (
     vertex_l2,
 )
 from relightanyone.model.presets import Stage2Preset
-from relightanyone.model.relight import camera_centres, relight
+from relightanyone.model.relight import RelightParams, camera_centres, relight
 from relightanyone.model.sampling import iteration_generator
 from relightanyone.model.stage1_model import Stage1Model
 from relightanyone.model.stage2 import Stage2Model, texel_mesh_normals
@@ -266,28 +266,43 @@ class Fitter:
         rng = iteration_generator(self.settings.seed, step, VIEW_STREAM + stream_offset)
         return sorted(int(i) for i in rng.choice(count, self.settings.views_per_step, replace=False))
 
+    def reflectance(
+        self, view_index: list[int]
+    ) -> tuple[torch.Tensor, Gaussians, RelightParams, torch.Tensor, torch.Tensor]:
+        """(vertices, Gaussians, reflectance per view (v, N, ...), w2c (v, 4, 4), K (v, 3, 3)) of the
+        current fit in some input views."""
+        vertices, gaussians = self.decode(self.stage1, self.z_id)
+        w2c, K = self.views.w2c[view_index], self.views.K[view_index]
+        count = len(view_index)
+        normals = texel_mesh_normals(vertices, self.stage1.binding).expand(count, -1, -1)
+        params = self.stage2(
+            gaussians.colours.expand(count, -1, -1),
+            gaussians.means.expand(count, -1, -1),
+            normals,
+            camera_centres(w2c),
+        )
+        return vertices, gaussians, params, w2c, K
+
+    def shading(self) -> tuple[torch.Tensor, torch.Tensor, Stage2Preset]:
+        """(rig light positions (L, 3), head centre (3,), the preset with the shading options)."""
+        return self.model.rig.positions, self.stage2.head_centre, self.model.stage2_preset
+
     def render(self, view_index: list[int]) -> tuple[torch.Tensor, torch.Tensor, Gaussians]:
         """Relit render of the current fit in some input views: (images (v, 3, H, W), vertices, Gaussians)."""
         from relightanyone.render.rasterize import rasterize
 
-        vertices, gaussians = self.decode(self.stage1, self.z_id)
-        w2c, K = self.views.w2c[view_index], self.views.K[view_index]
-        cameras = camera_centres(w2c)
+        vertices, gaussians, params, w2c, K = self.reflectance(view_index)
+        positions, head_centre, preset = self.shading()
         count = len(view_index)
-        normals = texel_mesh_normals(vertices, self.stage1.binding).expand(count, -1, -1)
-        params = self.stage2(
-            gaussians.colours.expand(count, -1, -1), gaussians.means.expand(count, -1, -1), normals, cameras
-        )
-        intensities = self.light_intensities()
         relit = relight(
             params,
             gaussians.means.expand(count, -1, -1),
-            cameras,
-            self.model.rig.positions.expand(count, -1, -1),
-            intensities.expand(count, -1, -1),
-            self.stage2.head_centre,
-            self.model.stage2_preset.lobe_normalization,
-            self.model.stage2_preset.inverse_square,
+            camera_centres(w2c),
+            positions.expand(count, -1, -1),
+            self.light_intensities().expand(count, -1, -1),
+            head_centre,
+            preset.lobe_normalization,
+            preset.inverse_square,
         )
         height, width = self.views.images.shape[-2:]
         # One splat call: the geometry is shared by the views, the relit colours are per camera (v, N, 3).
