@@ -165,10 +165,12 @@ def w2c_to_canonical(w2c_native: Any, canonical_from_native: Any) -> np.ndarray:
     cam_scale, _, _ = decompose_similarity(w2c)
     if abs(cam_scale - 1.0) > 1e-4:
         raise ValueError(f"w2c_native must be rigid (scale 1), got scale {cam_scale:.6g}")
-    scale, _, _ = decompose_similarity(canonical_from_native)
-    out = np.diag([scale, scale, scale, 1.0]) @ w2c @ invert_similarity(canonical_from_native)
+    scale, R, t = decompose_similarity(canonical_from_native)
+    rotation = w2c[:3, :3] @ R.T
+    out = np.eye(4)
+    out[:3, 3] = scale * w2c[:3, 3] - rotation @ t
     # Re-orthonormalise against round-off so the stored extrinsic is exactly rigid.
-    U, _, Vt = np.linalg.svd(out[:3, :3])
+    U, _, Vt = np.linalg.svd(rotation)
     out[:3, :3] = U @ Vt
     return out
 

@@ -15,6 +15,7 @@ from functools import partial
 
 EXECUTORS = ("local", "ray")
 WORKER_PRELOAD = (
+    "relightanyone.ingest.runner",  # the alignment's task function lives there
     "relightanyone.ingest.subject_task",
     "relightanyone.ingest.decode",
     "relightanyone.ingest.steps",
@@ -26,6 +27,7 @@ WORKER_PRELOAD = (
     "cv2",
     "trimesh",
     "torch",  # calibration readers return tensors; importing it in every worker costs seconds
+    "relightanyone.render.calibration_io",  # the tracker's cameras (imports kornia: 0.3 s per worker)
 )
 
 
@@ -97,18 +99,54 @@ def run_tasks(
             bar.close()
 
 
-def _map_pool(function, items, order, workers, on_done) -> dict:
-    import multiprocessing
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+# workers -> (owning pid, process pool) kept for this process's later calls; a forked child sees its
+# parent's entries but not the threads that drive those pools, so it starts its own.
+_POOLS: dict[int, tuple[int, object]] = {}
 
-    results = {}
+
+def _local_pool(workers: int):
+    """The process pool of ``workers`` workers, started on first use and kept until the process exits,
+    so the alignment and the tasks of an ingest (and the next ingest) reuse warm workers. A pool whose
+    worker died is replaced."""
+    import atexit
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor
+
+    owner, pool = _POOLS.get(workers, (None, None))
+    if owner == os.getpid():
+        if not getattr(pool, "_broken", False):
+            return pool
+        pool.shutdown(wait=False, cancel_futures=True)
     context = multiprocessing.get_context("forkserver")
     # Workers fork from a clean server process that imported the heavy modules once, instead of each
     # spawned worker importing them again; nothing is inherited from this (possibly threaded) process.
     context.set_forkserver_preload(list(WORKER_PRELOAD))
-    with ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=context) as pool:
-        futures = {pool.submit(function, items[i]): i for i in order}
-        pending = set(futures)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=context)
+    if not any(pid == os.getpid() for pid, _ in _POOLS.values()):
+        atexit.register(shutdown_pools)
+    _POOLS[workers] = (os.getpid(), pool)
+    return pool
+
+
+def shutdown_pools() -> None:
+    """Stop this process's kept pools (they also stop when it exits)."""
+    import os
+
+    for workers, (owner, pool) in list(_POOLS.items()):
+        del _POOLS[workers]
+        if owner == os.getpid():
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _map_pool(function, items, order, workers, on_done) -> dict:
+    from concurrent.futures import FIRST_COMPLETED, wait
+
+    results = {}
+    pool = _local_pool(workers)
+    futures = {pool.submit(function, items[i]): i for i in order}
+    pending = set(futures)
+    try:
         while pending:
             done, pending = wait(pending, return_when=FIRST_COMPLETED)
             for future in done:
@@ -116,6 +154,9 @@ def _map_pool(function, items, order, workers, on_done) -> dict:
                 results[i] = future.result()
                 if on_done is not None:
                     on_done(items[i])
+    finally:
+        for future in pending:  # an error or Ctrl-C here: do not leave the kept pool busy
+            future.cancel()
     return results
 
 

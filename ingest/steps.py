@@ -73,6 +73,9 @@ def project_points(points: Any, K: Any, w2c: Any, dist: Any = None) -> np.ndarra
     K, w2c, dist = _as_K(K), _as_w2c(w2c), _as_dist(dist)
     if pts.shape[0] == 0:
         return np.zeros((0, 2))
+    if not dist.any():  # plain pinhole: a few array operations, much cheaper than cv2.projectPoints
+        cam = pts @ w2c[:3, :3].T + w2c[:3, 3]
+        return cam[:, :2] / cam[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
     rvec, _ = cv2.Rodrigues(w2c[:3, :3])
     pixels, _ = cv2.projectPoints(pts, rvec, w2c[:3, 3], K, dist if dist.size else None)
     return pixels.reshape(-1, 2)
@@ -92,13 +95,17 @@ def crop_box_around_points(pixels: Any, image_size: Any, margin: float = 0.1) ->
         margin: fraction of the points' extent added on each side.
     """
     px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-    px = px[np.all(np.isfinite(px), axis=1)]
+    if not np.isfinite(px).all():
+        finite = np.isfinite(px)
+        px = px[finite[:, 0] & finite[:, 1]]
     if px.shape[0] == 0:
         raise ValueError("no finite pixel coordinates to crop around (is the mesh behind the camera?)")
     if margin < 0:
         raise ValueError(f"margin must be >= 0, got {margin}")
     width, height = _size_wh(image_size)
-    lo, hi = px.min(axis=0), px.max(axis=0)
+    # Per column: a reduction down the short axis of an (N, 2) array is several times slower.
+    lo = np.array([px[:, 0].min(), px[:, 1].min()])
+    hi = np.array([px[:, 0].max(), px[:, 1].max()])
     extent = float(max(hi - lo))
     side = max(int(math.ceil(extent * (1.0 + 2.0 * margin) - 1e-9)), 1)
     centre = (lo + hi) / 2.0
@@ -194,27 +201,100 @@ def undistort_crop_resize(
 
 
 def _pixel_rays(
-    K: np.ndarray, w2c: np.ndarray, window: tuple[int, int, int, int]
+    K: np.ndarray, w2c: np.ndarray, u: np.ndarray, v: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """World-space ray origins and unit directions ``(h·w, 3)`` through the pixel centres of
-    ``window = (x0, y0, x1, y1)`` (half-open), row-major."""
-    x0, y0, x1, y1 = window
-    u, v = np.meshgrid(np.arange(x0, x1, dtype=np.float64), np.arange(y0, y1, dtype=np.float64))
-    pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=1)
-    dirs_cam = pix @ np.linalg.inv(K).T
+    """World-space ray origins and directions ``(N, 3)`` through the pixel centres ``(u, v)`` (each
+    ``(N,)``); directions are not normalised (the ray caster does that)."""
     R, t = w2c[:3, :3], w2c[:3, 3]
-    dirs = dirs_cam @ R  # R^T applied to each row
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    origins = np.broadcast_to(-R.T @ t, dirs.shape)
-    return np.ascontiguousarray(origins), dirs
+    K_inv = np.linalg.inv(K)
+    pix = np.stack([u, v, np.ones(u.size)], axis=1)
+    dirs = pix @ (R.T @ K_inv).T  # camera rays K⁻¹ [u v 1]ᵀ turned into the world by Rᵀ
+    return np.broadcast_to(-R.T @ t, dirs.shape), dirs
+
+
+class MeshSilhouette:
+    """Silhouette of one mesh, cut below the neck line, seen by any pinhole camera.
+
+    One ray per pixel centre (trimesh, with the embree backend when installed); a pixel is in when the
+    first face its ray hits is not flagged in ``neck_faces``, so the neck and anything seen through it are
+    excluded while the chin in front of the neck is kept. Only pixels inside the convex hull of the
+    projected head (non-neck) vertices are cast: a ray outside it cannot hit a head face. The ray-casting
+    structure is built once, so one mesh seen by many cameras (a frame of a multi-view rig) pays it once.
+
+    Args:
+        vertices: ``(V, 3)`` canonical-space vertices; faces: ``(F, 3)`` int.
+        neck_faces: ``(F,)`` bool, True for faces below the neck line; None keeps every face.
+    """
+
+    def __init__(self, vertices: Any, faces: Any, neck_faces: Any = None):
+        V = np.asarray(vertices, dtype=np.float64)
+        F = np.asarray(faces)
+        if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3:
+            raise ValueError(f"vertices must be (V, 3) and faces (F, 3), got {V.shape} and {F.shape}")
+        if F.size and (F.min() < 0 or F.max() >= V.shape[0]):
+            raise ValueError(f"faces index vertices outside 0..{V.shape[0] - 1}")
+        if neck_faces is None:
+            neck = np.zeros(F.shape[0], dtype=bool)
+        else:
+            neck = np.asarray(neck_faces, dtype=bool).reshape(-1)
+            if neck.shape != (F.shape[0],):
+                raise ValueError(f"neck_face_mask must be ({F.shape[0]},) bool, got {neck.shape}")
+        self.vertices, self.faces, self.neck_faces = V, F, neck
+        self.head_vertices = V[np.unique(F[~neck])] if F.size else V[:0]
+        self._ray_mesh = None
+
+    def mask(self, K: Any, w2c: Any, size: Any) -> np.ndarray:
+        """``(H, W)`` bool silhouette seen by ``K (3, 3)``, ``w2c (4, 4)``; size ``(width, height)`` or int."""
+        import trimesh
+
+        K, w2c = _as_K(K), _as_w2c(w2c)
+        width, height = _size_wh(size)
+        mask = np.zeros((height, width), dtype=bool)
+        candidates = _candidate_pixels(self.head_vertices, K, w2c, width, height)
+        if candidates.size == 0:
+            return mask
+        if self._ray_mesh is None:
+            self._ray_mesh = trimesh.Trimesh(vertices=self.vertices, faces=self.faces, process=False)
+        v, u = np.divmod(candidates, width)
+        origins, dirs = _pixel_rays(K, w2c, u.astype(np.float64), v.astype(np.float64))
+        first = np.asarray(self._ray_mesh.ray.intersects_first(ray_origins=origins, ray_directions=dirs))
+        hit = first >= 0
+        mask.reshape(-1)[candidates[hit]] = ~self.neck_faces[first[hit]]
+        return mask
+
+
+def _candidate_pixels(
+    points: np.ndarray, K: np.ndarray, w2c: np.ndarray, width: int, height: int
+) -> np.ndarray:
+    """Flat indices ``(N,)`` of the pixels whose centres may see a triangle of ``points (P, 3)``.
+
+    With every point in front of the camera, a triangle projects inside the convex hull of the projected
+    points: the hull is filled (boundary pixels included, then grown by one pixel against round-off).
+    Otherwise (or for projections too far off to fill) every pixel is a candidate.
+    """
+    import cv2
+
+    if points.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+    if np.any(cam[:, 2] <= 1e-9):
+        return np.arange(width * height)
+    px = cam[:, :2] / cam[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
+    lo = np.array([px[:, 0].min(), px[:, 1].min()])
+    hi = np.array([px[:, 0].max(), px[:, 1].max()])
+    if hi[0] < -1 or hi[1] < -1 or lo[0] > width or lo[1] > height:
+        return np.zeros(0, dtype=np.int64)
+    if np.abs(px).max() > 1e6:  # beyond the fixed-point range of the hull fill: cast everything
+        return np.arange(width * height)
+    hull = cv2.convexHull(np.round(px * 16).astype(np.int32))
+    region = np.zeros((height, width), dtype=np.uint8)
+    cv2.fillConvexPoly(region, hull, 1, lineType=cv2.LINE_8, shift=4)
+    region = cv2.dilate(region, np.ones((3, 3), np.uint8))
+    return np.flatnonzero(region)
 
 
 def mesh_mask(vertices: Any, faces: Any, neck_face_mask: Any, K: Any, w2c: Any, size: Any) -> np.ndarray:
-    """Silhouette of a mesh seen by a pinhole camera, cut below the neck line.
-
-    One ray per pixel centre (trimesh with the embree backend when installed); a pixel is in the mask when
-    its first hit is a face not flagged in ``neck_face_mask``, so the neck and anything seen through it
-    are excluded while the chin in front of the neck is kept.
+    """Silhouette of a mesh seen by a pinhole camera, cut below the neck line (:class:`MeshSilhouette`).
 
     Args:
         vertices: ``(V, 3)`` canonical-space vertices; faces: ``(F, 3)`` int.
@@ -224,56 +304,4 @@ def mesh_mask(vertices: Any, faces: Any, neck_face_mask: Any, K: Any, w2c: Any, 
     Returns:
         ``(H, W)`` bool.
     """
-    import trimesh
-
-    V = np.asarray(vertices, dtype=np.float64)
-    F = np.asarray(faces)
-    if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3:
-        raise ValueError(f"vertices must be (V, 3) and faces (F, 3), got {V.shape} and {F.shape}")
-    if F.size and (F.min() < 0 or F.max() >= V.shape[0]):
-        raise ValueError(f"faces index vertices outside 0..{V.shape[0] - 1}")
-    if neck_face_mask is None:
-        neck = np.zeros(F.shape[0], dtype=bool)
-    else:
-        neck = np.asarray(neck_face_mask, dtype=bool).reshape(-1)
-        if neck.shape != (F.shape[0],):
-            raise ValueError(f"neck_face_mask must be ({F.shape[0]},) bool, got {neck.shape}")
-    width, height = _size_wh(size)
-    K, w2c = _as_K(K), _as_w2c(w2c)
-    window = _projected_window(V[np.unique(F)] if F.size else V[:0], K, w2c, width, height)
-    mask = np.zeros((height, width), dtype=bool)
-    if window is None:
-        return mask
-    mesh = trimesh.Trimesh(vertices=V, faces=F, process=False)
-    origins, dirs = _pixel_rays(K, w2c, window)
-    first = np.asarray(mesh.ray.intersects_first(ray_origins=origins, ray_directions=dirs))
-    hit = first >= 0
-    keep = np.zeros_like(hit)
-    keep[hit] = ~neck[first[hit]]
-    x0, y0, x1, y1 = window
-    mask[y0:y1, x0:x1] = keep.reshape(y1 - y0, x1 - x0)
-    return mask
-
-
-def _projected_window(
-    vertices: np.ndarray, K: np.ndarray, w2c: np.ndarray, width: int, height: int
-) -> tuple[int, int, int, int] | None:
-    """Pixel window ``(x0, y0, x1, y1)`` that can contain the mesh, or None when it is empty.
-
-    A pinhole projection of a triangle lies inside the hull of its projected vertices, so when every
-    vertex is in front of the camera only the (1 px padded) bounding box needs rays; otherwise the whole
-    image is cast.
-    """
-    if vertices.shape[0] == 0:
-        return None
-    cam = vertices @ w2c[:3, :3].T + w2c[:3, 3]
-    if np.any(cam[:, 2] <= 1e-9):
-        return (0, 0, width, height)
-    px = (cam / cam[:, 2:3]) @ K.T
-    x0 = max(int(np.floor(px[:, 0].min())) - 1, 0)
-    y0 = max(int(np.floor(px[:, 1].min())) - 1, 0)
-    x1 = min(int(np.ceil(px[:, 0].max())) + 2, width)
-    y1 = min(int(np.ceil(px[:, 1].max())) + 2, height)
-    if x1 <= x0 or y1 <= y0:
-        return None
-    return (x0, y0, x1, y1)
+    return MeshSilhouette(vertices, faces, neck_face_mask).mask(K, w2c, size)

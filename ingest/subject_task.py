@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .records import SourceView, SubjectPlan
+from .steps import MeshSilhouette
 from .tracking import AlignmentError, FrameAlignment, Template, load_template
 
 
@@ -59,41 +60,25 @@ def canonical_mesh(alignment: FrameAlignment, template: Template) -> np.ndarray:
 
     from .tracking import read_obj_vertices
 
-    tracked = read_obj_vertices(Path(alignment.mesh_path), template.vertex_count) * alignment.mesh_scale
+    tracked = alignment.tracked_vertices
+    if tracked is None:
+        tracked = read_obj_vertices(Path(alignment.mesh_path), template.vertex_count) * alignment.mesh_scale
     return transform_points(alignment.canonical_from_tracker, tracked)
 
 
-class FrameSilhouette:
-    """The silhouette of one frame's canonical mesh in any camera, cut below the neck line.
+@dataclass(frozen=True)
+class FrameMesh:
+    """A frame's canonical tracked mesh as its views use it: ``crop_points (P, 3)``, the head vertices the
+    crop frames (the neck excluded), and the silhouette the mask is cut from."""
 
-    Same rule as :func:`relightanyone.ingest.steps.mesh_mask` (a pixel is in when its first hit is a face
-    above the neck line) with the ray-casting structure built once per frame instead of once per view:
-    every camera of a frame sees the same mesh.
-    """
+    crop_points: np.ndarray
+    silhouette: MeshSilhouette
 
-    def __init__(self, vertices: np.ndarray, template: Template):
-        import trimesh
-
-        self.vertices = vertices
-        self.template = template
-        self.mesh = trimesh.Trimesh(vertices=vertices, faces=template.faces, process=False)
-
-    def mask(self, K: np.ndarray, w2c: np.ndarray, size: int) -> np.ndarray:
-        """``(size, size)`` bool silhouette seen by the pinhole camera ``K (3, 3)``, ``w2c (4, 4)``."""
-        from .steps import _pixel_rays, _projected_window
-
-        mask = np.zeros((size, size), dtype=bool)
-        window = _projected_window(self.vertices, K, w2c, size, size)
-        if window is None:
-            return mask
-        origins, directions = _pixel_rays(K, w2c, window)
-        first = np.asarray(self.mesh.ray.intersects_first(ray_origins=origins, ray_directions=directions))
-        hit = first >= 0
-        keep = np.zeros_like(hit)
-        keep[hit] = ~self.template.neck_faces[first[hit]]
-        x0, y0, x1, y1 = window
-        mask[y0:y1, x0:x1] = keep.reshape(y1 - y0, x1 - x0)
-        return mask
+    @classmethod
+    def from_vertices(cls, vertices: np.ndarray, template: Template) -> FrameMesh:
+        head = ~template.neck_vertices
+        crop_points = vertices[head] if head.sum() >= 3 else vertices
+        return cls(crop_points, MeshSilhouette(vertices, template.faces, template.neck_faces))
 
 
 def normalize_view(
@@ -101,7 +86,7 @@ def normalize_view(
     image: np.ndarray,
     alpha: np.ndarray | None,
     alignment: FrameAlignment,
-    silhouette: FrameSilhouette,
+    mesh: FrameMesh,
     out_size: int,
     margin: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int, int]]:
@@ -109,7 +94,7 @@ def normalize_view(
 
     Args:
         image: ``(H, W, 3)`` float32 colour-calibrated linear RGB; alpha: ``(H, W)`` in [0, 1] or None.
-        silhouette: the canonical tracked mesh of the view's frame.
+        mesh: the canonical tracked mesh of the view's frame.
     Returns:
         ``(image (S, S, 3) float32, mask (S, S) float32, K (3, 3), w2c (4, 4), crop box)``.
     """
@@ -125,12 +110,10 @@ def normalize_view(
             f"{camera.width}x{camera.height}"
         )
     w2c = w2c_to_canonical(camera.w2c, alignment.canonical_from_native)
-    vertices, template = silhouette.vertices, silhouette.template
-    head = vertices[~template.neck_vertices] if (~template.neck_vertices).sum() >= 3 else vertices
     # The crop is taken from the undistorted image, whose pinhole camera is K itself.
-    box = crop_box_around_points(project_points(head, camera.K, w2c), (width, height), margin)
+    box = crop_box_around_points(project_points(mesh.crop_points, camera.K, w2c), (width, height), margin)
     out, K_new = undistort_crop_resize(image, camera.K, camera.dist, box, out_size)
-    mask = silhouette.mask(K_new, w2c, out_size).astype(np.float32)
+    mask = mesh.silhouette.mask(K_new, w2c, out_size).astype(np.float32)
     if alpha is not None:
         if alpha.shape != (height, width):
             raise ValueError(f"alpha map is {alpha.shape[1]}x{alpha.shape[0]}, image is {width}x{height}")
@@ -174,14 +157,14 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
     with writer.part(task.task) as part, TaskDecoder(settings.source_root) as decoder:
         for refusal in plan.refusals:
             refuse(part, refusal.item, refusal.source, refusal.reason, "plan")
-        meshes: dict[int, FrameSilhouette] = {}
+        meshes: dict[int, FrameMesh] = {}
         for frame, alignment in sorted(task.alignments.items()):
             try:
                 vertices = canonical_mesh(alignment, template)
             except ValueError as error:
                 task.failures[frame] = f"subject {plan.subject} frame {frame}: {error}"
                 continue
-            meshes[frame] = FrameSilhouette(vertices, template)
+            meshes[frame] = FrameMesh.from_vertices(vertices, template)
             part.add_mesh(MeshRow(plan.subject, frame, vertices.astype(np.float32)))
         views = sorted(plan.views, key=lambda v: (v.frame, v.camera.name, v.pattern))
         decoder.prefetch_videos(v.image for v in views if v.frame in meshes)

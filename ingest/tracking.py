@@ -136,11 +136,27 @@ def find_template(tracking_dir: Path, explicit: Path | None = None) -> Path:
     raise FileNotFoundError(f"no template mesh found (looked at {looked}); pass --template PATH/template.obj")
 
 
-@functools.lru_cache(maxsize=4)
+def _file_signature(path: Path | None) -> tuple | None:
+    try:
+        stat = Path(path).stat() if path is not None else None
+    except OSError:
+        return None
+    return None if stat is None else (stat.st_mtime_ns, stat.st_size)
+
+
 def load_template(path: Path, neck_mask_path: Path | None = None) -> Template:
     """Read the template OBJ and its neck mask (one 0/1 per vertex; ``neck_mask.txt`` next to it by
-    default; no file means no neck cut)."""
+    default; no file means no neck cut). Cached per process while the files are unchanged (pool workers
+    live across ingests)."""
     path = Path(path)
+    neck_mask_path = Path(neck_mask_path) if neck_mask_path is not None else None
+    neck_default = [path.parent / n for n in NECK_MASK_NAMES]
+    signature = tuple(_file_signature(p) for p in [path, neck_mask_path, *neck_default])
+    return _load_template(path, neck_mask_path, signature)
+
+
+@functools.lru_cache(maxsize=4)
+def _load_template(path: Path, neck_mask_path: Path | None, signature: tuple) -> Template:
     vertices, faces = read_obj(path)
     if faces.size == 0:
         raise ValueError(f"{path}: the template has no faces")
@@ -270,6 +286,9 @@ class FrameAlignment:
     fit_rms_mm: float
     agreements: tuple[CameraAgreement, ...] = field(default_factory=tuple)
     mesh_scale: float = 1.0
+    # ``(V, 3)`` the tracked mesh as read for the fit (tracker world, metres), so the ingest task that
+    # follows need not read the file again.
+    tracked_vertices: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
@@ -358,6 +377,7 @@ def align_frame(
         fit_rms_mm=rms_mm,
         agreements=agreements,
         mesh_scale=vhap.mesh_scale,
+        tracked_vertices=tracked,
     )
 
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 from relightanyone.ingest.steps import (
+    MeshSilhouette,
     crop_box_around_points,
     crop_resize_intrinsics,
     mesh_mask,
@@ -243,3 +244,37 @@ def test_mesh_mask_is_empty_for_a_mesh_outside_or_behind_the_view():
     assert not mesh_mask(sphere.vertices, sphere.faces, None, K, behind, 64).any()
     straddling = _look_at(np.array([0.0, 0.0, 0.05]), np.array([0.0, 0.0, 1.0]))  # camera inside the sphere
     assert mesh_mask(sphere.vertices, sphere.faces, None, K, straddling, 64).all()
+
+
+def _every_pixel_ray_cast(mesh: trimesh.Trimesh, neck: np.ndarray, K, w2c, size: int) -> np.ndarray:
+    """The mask rule with one ray through every pixel centre, no culling."""
+    v, u = np.mgrid[0:size, 0:size].astype(np.float64)
+    pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=1)
+    dirs = pix @ np.linalg.inv(K).T @ w2c[:3, :3]
+    origins = np.broadcast_to(-w2c[:3, :3].T @ w2c[:3, 3], dirs.shape)
+    first = mesh.ray.intersects_first(ray_origins=np.ascontiguousarray(origins), ray_directions=dirs)
+    keep = first >= 0
+    keep[keep] = ~neck[first[keep]]
+    return keep.reshape(size, size)
+
+
+def test_silhouette_casts_only_inside_the_head_hull_and_loses_no_pixel():
+    # An uneven head-like shape (a bumpy ellipsoid with a "neck" band), seen from many sides and
+    # distances, some views cropped so the head leaves the image: the culled cast equals the full one.
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    rng = np.random.default_rng(3)
+    bumps = 1.0 + 0.15 * np.sin(7 * sphere.vertices[:, 0] / 0.1) * np.cos(5 * sphere.vertices[:, 1] / 0.1)
+    vertices = sphere.vertices * bumps[:, None] * [0.8, 1.2, 0.9]
+    neck = sphere.triangles_center[:, 1] < -0.04
+    silhouette = MeshSilhouette(vertices, sphere.faces, neck)
+    mesh = trimesh.Trimesh(vertices, sphere.faces, process=False)
+    for _ in range(12):
+        direction = rng.normal(size=3)
+        eye = direction / np.linalg.norm(direction) * rng.uniform(0.25, 0.8)
+        w2c = _look_at(eye, rng.normal(size=3) * 0.05)
+        size = int(rng.choice([48, 64, 96]))
+        focal = size * rng.uniform(0.8, 2.5)
+        K = np.array([[focal, 0, size / 2 + rng.uniform(-30, 30)], [0, focal, size / 2], [0, 0, 1]])
+        expected = _every_pixel_ray_cast(mesh, neck, K, w2c, size)
+        assert np.array_equal(silhouette.mask(K, w2c, size), expected)
+        assert expected.any()
