@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from relightanyone.model.fit import MIN_INTENSITY, FitSettings, Fitter
+from relightanyone.model.fit import FitSettings, Fitter
 from relightanyone.model.fit_views import FitViews
 from relightanyone.model.gaussians import Gaussians, assemble_gaussians, gather_texels
 from relightanyone.model.presets import Stage2Preset
@@ -26,13 +26,15 @@ from relightanyone.render.lights import PointLights
 
 @dataclass
 class SingleStageRun:
-    """A trained single-stage baseline with the OLAT rig of its dataset."""
+    """A trained single-stage baseline with the OLAT rig of its dataset, and that rig as lit in its
+    full-on frames (what a full-on input's lighting starts at)."""
 
     model: SingleStageModel
     preset: Stage2Preset
     rig: PointLights
     dataset: str
     path: Path
+    full_on_rig: PointLights | None = None
 
 
 def load_single_stage_run(run: str | Path) -> SingleStageRun:
@@ -41,7 +43,7 @@ def load_single_stage_run(run: str | Path) -> SingleStageRun:
     from relightanyone.model.gaussians import TexelBinding
     from relightanyone.model.presets import Stage1Preset
     from relightanyone.model.stage2_train import TEMPLATE_NAME
-    from relightanyone.render.lights import olat_rig_from_table
+    from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
     from relightanyone.render.mesh import load_obj
     from relightanyone.render.uv_binding import UVBinding
 
@@ -72,10 +74,11 @@ def load_single_stage_run(run: str | Path) -> SingleStageRun:
     rows = NormalizedDataset(dataset_path).lights()
     if not rows:
         raise ValueError(f"{dataset_path}: lights.arrow has no rows; the baseline fit needs the OLAT rig")
-    rig = olat_rig_from_table(
-        {name: [row[name] for row in rows] for name in rows[0]}, source=str(dataset_path / "lights.arrow")
-    )
-    return SingleStageRun(model.eval().requires_grad_(False), preset, rig, checkpoint["dataset"], run)
+    columns = {name: [row[name] for row in rows] for name in rows[0]}
+    rig = olat_rig_from_table(columns, source=str(dataset_path / "lights.arrow"))
+    full_on_rig = full_on_rig_from_table(columns, rig, source=str(dataset_path / "lights.arrow"))
+    model = model.eval().requires_grad_(False)
+    return SingleStageRun(model, preset, rig, checkpoint["dataset"], run, full_on_rig)
 
 
 def decode_single_stage(
@@ -185,7 +188,7 @@ class SingleStageFitter(Fitter):
         codes = self.reference.identity_codes.detach()
         self.training_codes = codes
         self.z_id = torch.nn.Parameter(codes.mean(dim=0, keepdim=True).clone())
-        self.log_intensities = torch.nn.Parameter(run.rig.intensities.clamp(min=MIN_INTENSITY).log().clone())
+        self.start_lighting((run.full_on_rig or run.rig).intensities)
         self.history = {"inversion": [], "finetune": []}
         self.inversion_steps = 0
         self.finetune_steps = 0

@@ -156,6 +156,35 @@ def render_point_lights(avatar, cameras, lights: PointLights) -> torch.Tensor:
     )
 
 
+@torch.no_grad()
+def render_weighted_rig(avatar, cameras, cases: list[LightCase]) -> torch.Tensor:
+    """The avatar under each case's weighted rig, every light on at once -> (E, V, 3, H, W).
+
+    A case's lighting is its basis lights with intensities scaled by its per-channel weights: the
+    environment as the light stage discretizes it, which is also how the truth was relit. The model
+    shades it in one pass, as RGCA shades an environment. Summing its single-light renders instead would
+    not be the model's prediction: its shading clamps negative diffuse per render, so the negative lobes
+    its low-order transfer gives lights behind the head, which cancel in a joint render, would each be
+    clamped to zero and the sum would come out too bright.
+    """
+    from relightanyone.model.avatar import check_pinhole_cameras, relight_views
+
+    width, height = check_pinhole_cameras(cameras)
+    lightings = []
+    for case in cases:
+        weights = torch.as_tensor(case.weights, dtype=torch.float32)
+        lightings.append(PointLights(case.basis.positions, case.basis.intensities.float() * weights))
+    return relight_views(
+        avatar,
+        cameras.w2c.float(),
+        cameras.K.float(),
+        width,
+        height,
+        lightings,
+        lightings_per_pass=len(cases),
+    )
+
+
 def compare(avatar, cases: list[LightCase], lpips) -> Comparison:
     """Render every case (grouped by camera set: one batched render per group) and score it."""
     comparison = Comparison()
@@ -174,10 +203,8 @@ def compare(avatar, cases: list[LightCase], lpips) -> Comparison:
                 predictions[id(case)] = image
         relit = [c for c in group if c.light is None]
         if relit:
-            basis = render_point_lights(avatar, cameras, relit[0].basis)
-            for case in relit:
-                weights = torch.as_tensor(case.weights, dtype=torch.float32)
-                predictions[id(case)] = torch.einsum("lc,lvchw->vchw", weights, basis)
+            for case, image in zip(relit, render_weighted_rig(avatar, cameras, relit), strict=True):
+                predictions[id(case)] = image
     for case in cases:
         truth, mask = stack_truth(case.views)
         comparison.add(case.label, predictions[id(case)], truth, mask, lpips)

@@ -62,6 +62,9 @@ class FitSettings:
     finetune_lr: float = 3e-4  # stage-1 decoder weights (small, as pivotal tuning)
     views_per_step: int = 4
     identity_weight: float = 0.01  # λ_id on ‖z_id‖²
+    # λ_I on the mean squared log-ratio of the scene intensities to the rig's full-on light: images fix
+    # only the product of reflectance and light, and without a prior the split drifts (see docs/model.md)
+    lighting_prior_weight: float = 1.0
     locality_weight: float = 1.0  # λ_lr
     locality_codes: int = 2  # codes z_r per finetuning step
     locality_min_fraction: float = 0.5  # z_r = z + t (z_train − z), t ~ U(min_fraction, 1)
@@ -235,11 +238,15 @@ class Fitter:
         self.z_l = model.lighting_code.detach().reshape(1, -1)
         # Inversion starts at the mean identity; the unknown lighting starts as the calibrated full-on rig.
         self.z_id = torch.nn.Parameter(model.training_codes.mean(dim=0, keepdim=True).clone())
-        start = (model.full_on_rig or model.rig).intensities
-        self.log_intensities = torch.nn.Parameter(start.clamp(min=MIN_INTENSITY).log().clone())
+        self.start_lighting((model.full_on_rig or model.rig).intensities)
         self.history: dict[str, list[dict[str, float]]] = {"inversion": [], "finetune": []}
         self.inversion_steps = 0
         self.finetune_steps = 0
+
+    def start_lighting(self, intensities: torch.Tensor) -> None:
+        """Start the scene lighting at ``intensities`` (L, 3), also the centre of its prior."""
+        self.log_intensities = torch.nn.Parameter(intensities.clamp(min=MIN_INTENSITY).log().clone())
+        self.log_intensities_start = self.log_intensities.detach().clone()
 
     def light_intensities(self) -> torch.Tensor:
         """(L, 3) current RGB intensity of every rig light."""
@@ -341,7 +348,12 @@ class Fitter:
         """``10 L1 + 0.2 (1 − SSIM) + 0.4 vertex L2 + λ_id ‖z_id‖²`` and its logged terms."""
         terms, _, _ = self.data_terms(view_index)
         terms["identity"] = self.z_id.pow(2).sum()
-        total = self.data_loss(terms) + self.settings.identity_weight * terms["identity"]
+        terms["lighting_prior"] = (self.log_intensities - self.log_intensities_start).pow(2).mean()
+        total = (
+            self.data_loss(terms)
+            + self.settings.identity_weight * terms["identity"]
+            + self.settings.lighting_prior_weight * terms["lighting_prior"]
+        )
         return total, _logged(terms, total)
 
     def finetune_loss(

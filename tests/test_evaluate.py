@@ -225,9 +225,9 @@ def test_tables_and_report(evaluated):
 
 
 def test_batched_point_light_renders_match_relight(evaluated):
-    from relightanyone.model.eval_cases import view_cameras
+    from relightanyone.model.eval_cases import LightCase, view_cameras
     from relightanyone.model.eval_single_stage import SingleStageFitter, load_single_stage_run
-    from relightanyone.model.eval_tables import EvalView, render_point_lights
+    from relightanyone.model.eval_tables import EvalView, render_point_lights, render_weighted_rig
     from relightanyone.model.fit import FitSettings, Fitter, load_relightable_model
     from relightanyone.model.fit_views import load_fit_views
     from relightanyone.render.lights import PointLights
@@ -246,6 +246,12 @@ def test_batched_point_light_renders_match_relight(evaluated):
     lights = PointLights(
         torch.tensor(LIGHTS[[2, 0]], dtype=torch.float32), torch.tensor([[1.0, 2, 3], [2.5] * 3])
     )
+    # Environment cases: the weighted rig is shaded in one pass, as the avatar relights any light set.
+    weights = np.array([[0.5, 1.0, 2.0], [0.0, 0.0, 0.0]])
+    cases = [
+        LightCase("env", [], weights=weights, basis=lights),
+        LightCase("both", [], weights=np.ones((2, 3)), basis=lights),
+    ]
     for avatar in avatars:
         stacked = render_point_lights(avatar, cameras, lights)
         assert stacked.shape == (2, 2, 3, SIZE, SIZE) and stacked.abs().sum() > 0
@@ -254,6 +260,10 @@ def test_batched_point_light_renders_match_relight(evaluated):
                 cameras, PointLights(lights.positions[k : k + 1], lights.intensities[k : k + 1])
             )
             torch.testing.assert_close(stacked[k], single, atol=1e-5, rtol=1e-4)
+        env, both = render_weighted_rig(avatar, cameras, cases)
+        scaled = PointLights(lights.positions[:1], lights.intensities[:1] * torch.tensor([[0.5, 1.0, 2.0]]))
+        torch.testing.assert_close(env, avatar.relight(cameras, scaled), atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(both, avatar.relight(cameras, lights), atol=1e-5, rtol=1e-4)
 
 
 def test_full_on_equals_sum_of_olat_in_a_consistent_dataset(evaluated):

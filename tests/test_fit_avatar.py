@@ -128,6 +128,19 @@ def test_every_rig_light_intensity_gets_a_gradient(world):
     assert not torch.allclose(intensities, fitter.model.rig.intensities)
 
 
+def test_lighting_prior_holds_the_split_between_reflectance_and_light(world):
+    # Images fix only reflectance × light: the prior keeps the scene light near the full-on rig, so the
+    # brightness the fit needs goes to the subject, not to the lights.
+    drift = {}
+    for weight in (0.0, 100.0):
+        fitter = _fitter(world, lighting_prior_weight=weight)
+        start = fitter.log_intensities.detach().clone()
+        fitter.invert(6)
+        drift[weight] = float((fitter.log_intensities.detach() - start).abs().max())
+        assert fitter.history["inversion"][-1]["lighting_prior"] >= 0
+    assert drift[100.0] < 0.5 * drift[0.0]
+
+
 def _finetuned(world, locality_weight: float) -> tuple[Fitter, float, float]:
     """Finetune from the same inversion; returns the fitter, its weight change and its change on training codes."""
     fitter = _fitter(world, locality_codes=2)

@@ -144,7 +144,9 @@ def _check_task_name(task: str) -> str:
 
 def _single_row_batch(schema: pa.Schema, values: dict) -> pa.RecordBatch:
     # Column by column: the same batch as ``from_pylist``, several times faster for one row.
-    return pa.RecordBatch.from_arrays([pa.array([values[f.name]], type=f.type) for f in schema], schema=schema)
+    return pa.RecordBatch.from_arrays(
+        [pa.array([values[f.name]], type=f.type) for f in schema], schema=schema
+    )
 
 
 class PartWriter:
