@@ -9,10 +9,13 @@ Measures, in one run on the same images:
   encode, parts, commit) with 1 and 2 local workers, warm like the bare loop: a 2-subject ingest with the
   same workers runs first, so imports and the worker pool's server are not timed;
 * ``cold``: the same runs in a fresh process, imports and pool start included (what one CLI call pays);
-* ``peak_memory``: peak RSS of a fresh process ingesting 2, 4, 8 ... subjects (it should stay flat).
+* ``peak_memory``: peak RSS of a fresh process ingesting 2, 4, 8 ... subjects (it should stay flat);
+* ``full_size``: bare loop and warm 1-worker ingest of a smaller world whose Ava-256 images have the real
+  dataset's size (667×1024), cropped to the ``small`` (512²) and ``paper`` (1024²) sizes: where the costs
+  go when images are as large as real ones.
 
-Usage: ``python bench/ingest.py [--world DIR] [--out bench/results/ingest.json]``; the world is
-generated (demo preset, Ava-256 only) when absent.
+Usage: ``python bench/ingest.py [--world DIR] [--full-size-world DIR] [--out bench/results/ingest.json]``;
+the worlds are generated (Ava-256 only) when absent.
 """
 
 from __future__ import annotations
@@ -30,6 +33,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_WORLD = REPO / "demo-out" / "ingest-bench-world"
+FULL_SIZE_WORLD = REPO / "demo-out" / "ingest-bench-world-full-size"
+FULL_SIZE_PRESETS = ("small", "paper")
 PRESET = "demo"
 BARE_PASSES = 3
 
@@ -41,6 +46,45 @@ def ensure_world(world: Path) -> None:
 
     print(f"generating the demo world (Ava-256 only) into {world} ...", flush=True)
     generate_world(world, "demo", seed=0, datasets=("d2",), progress=True, overwrite=True)
+
+
+def ensure_full_size_world(world: Path) -> None:
+    """4 Ava-256 subjects × 24 cameras at the real image size (667×1024), 1 frame, minimal answers."""
+    if (world / "world.json").is_file():
+        return
+    import dataclasses
+
+    from relightanyone.synth.presets import PRESETS, DatasetSize
+    from relightanyone.synth.world import generate_world
+
+    size = DatasetSize(
+        train_subjects=3, test_subjects=1, cameras=24, image_size=(667, 1024), frames=1, lights=2
+    )
+    preset = dataclasses.replace(
+        PRESETS["demo"], name="demo-ava256-full-size", answer_lights=2, envmap_count=1, d2=size
+    )
+    print(f"generating the full-size Ava-256 world into {world} ...", flush=True)
+    generate_world(world, preset, seed=0, datasets=("d2",), progress=True, overwrite=True, workers=2)
+
+
+def full_size(world: Path) -> dict:
+    """Bare loop and warm 1-worker ingest of the full-size world at each of FULL_SIZE_PRESETS."""
+    from relightanyone.ingest.runner import PRESET_SIZES
+
+    ensure_full_size_world(world)
+    plan = make_plan(world)
+    runs = {}
+    for preset in FULL_SIZE_PRESETS:
+        bare = bare_loop(plan, PRESET_SIZES[preset])
+        one = warm_end_to_end(plan, world, 1, preset)
+        runs[preset] = {
+            "crop_size": PRESET_SIZES[preset],
+            "bare_loop": bare,
+            "end_to_end_1_worker": one,
+            "end_to_end_over_bare_loop": round(one["images_per_s"] / bare["images_per_s"], 3),
+        }
+        print(f"full size, {preset} crops: ratio {runs[preset]['end_to_end_over_bare_loop']}", flush=True)
+    return {"world": str(world), "source_size": [667, 1024], "views": plan.view_count, "presets": runs}
 
 
 def make_plan(world: Path, subjects: int | None = None):
@@ -90,7 +134,7 @@ def bare_loop(plan, size: int) -> dict:
     }
 
 
-def end_to_end(plan, world: Path, workers: int) -> dict:
+def end_to_end(plan, world: Path, workers: int, preset: str = PRESET) -> dict:
     from relightanyone.ingest.runner import ingest_dataset
 
     with tempfile.TemporaryDirectory(prefix="ingest-bench-") as out:
@@ -99,7 +143,7 @@ def end_to_end(plan, world: Path, workers: int) -> dict:
             plan,
             world / "tracking" / "d2",
             Path(out),
-            PRESET,
+            preset,
             workers=workers,
             progress=False,
             template=world / "answers" / "template" / "template.obj",
@@ -114,11 +158,11 @@ def end_to_end(plan, world: Path, workers: int) -> dict:
     }
 
 
-def warm_end_to_end(plan, world: Path, workers: int) -> dict:
+def warm_end_to_end(plan, world: Path, workers: int, preset: str = PRESET) -> dict:
     """:func:`end_to_end` after a 2-subject ingest with the same workers (imports, pool server)."""
     warm_plan = make_plan(world, 2)
-    end_to_end(warm_plan, world, workers)
-    return end_to_end(plan, world, workers)
+    end_to_end(warm_plan, world, workers, preset)
+    return end_to_end(plan, world, workers, preset)
 
 
 def child_run(world: Path, subjects: int, workers: int) -> None:
@@ -165,6 +209,7 @@ def machine() -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--world", type=Path, default=DEFAULT_WORLD)
+    parser.add_argument("--full-size-world", type=Path, default=FULL_SIZE_WORLD)
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "ingest.json")
     parser.add_argument("--child", type=int, nargs=2, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -189,6 +234,7 @@ def main() -> None:
         print(f"cold, {run['workers']} worker(s): {run['seconds_with_imports']} s with imports", flush=True)
     counts = sorted({c for c in (2, 4, 8, 16) if c <= subjects} | {subjects})
     memory = peak_memory(args.world, counts)
+    large = full_size(args.full_size_world)
     result = {
         "benchmark": "ingest throughput (Ava-256 layout of the demo world)",
         "world": {
@@ -212,6 +258,7 @@ def main() -> None:
             ),
         },
         "peak_memory": memory,
+        "full_size": large,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")

@@ -212,14 +212,30 @@ def _pixel_rays(
     return np.broadcast_to(-R.T @ t, dirs.shape), dirs
 
 
+# Side in pixels of the blocks a silhouette is decided in: one ray per block away from the contours.
+SILHOUETTE_BLOCK = 4
+# Up to this many candidate pixels every one is cast: finding the contour blocks costs about 1.5 ms,
+# more than it saves on small crops (measured: 128² crops, 2.5 ms direct; 1024², 124 ms vs 39 ms).
+DIRECT_CAST_PIXELS = 16384
+
+
 class MeshSilhouette:
     """Silhouette of one mesh, cut below the neck line, seen by any pinhole camera.
 
-    One ray per pixel centre (trimesh, with the embree backend when installed); a pixel is in when the
-    first face its ray hits is not flagged in ``neck_faces``, so the neck and anything seen through it are
-    excluded while the chin in front of the neck is kept. Only pixels inside the convex hull of the
-    projected head (non-neck) vertices are cast: a ray outside it cannot hit a head face. The ray-casting
-    structure is built once, so one mesh seen by many cameras (a frame of a multi-view rig) pays it once.
+    The rule is one ray per pixel centre (trimesh, with the embree backend when installed): a pixel is in
+    when the first face its ray hits is not flagged in ``neck_faces``, so the neck and anything seen
+    through it are excluded while the chin in front of the neck is kept. The answer is the same, with far
+    fewer rays:
+
+    * only pixels inside the convex hull of the projected head (non-neck) vertices can be in;
+    * the answer changes from one pixel to the next only across the projection of a *contour edge*: a
+      silhouette edge (its two faces face opposite ways from the camera), a boundary or non-manifold edge,
+      or an edge on the neck line. Blocks of ``SILHOUETTE_BLOCK``² pixels that no contour edge crosses
+      take the answer of one ray; the others cast every pixel (crops with more than
+      ``DIRECT_CAST_PIXELS`` candidates; smaller ones cast every candidate).
+
+    The ray-casting structure and the edge adjacency are built once, so one mesh seen by many cameras (a
+    frame of a multi-view rig) pays them once.
 
     Args:
         vertices: ``(V, 3)`` canonical-space vertices; faces: ``(F, 3)`` int.
@@ -228,7 +244,7 @@ class MeshSilhouette:
 
     def __init__(self, vertices: Any, faces: Any, neck_faces: Any = None):
         V = np.asarray(vertices, dtype=np.float64)
-        F = np.asarray(faces)
+        F = np.asarray(faces, dtype=np.int64)
         if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3:
             raise ValueError(f"vertices must be (V, 3) and faces (F, 3), got {V.shape} and {F.shape}")
         if F.size and (F.min() < 0 or F.max() >= V.shape[0]):
@@ -241,32 +257,117 @@ class MeshSilhouette:
                 raise ValueError(f"neck_face_mask must be ({F.shape[0]},) bool, got {neck.shape}")
         self.vertices, self.faces, self.neck_faces = V, F, neck
         self.head_vertices = V[np.unique(F[~neck])] if F.size else V[:0]
+        corners = V[F] if F.size else np.zeros((0, 3, 3))
+        self._face_points = corners[:, 0]
+        self._face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        self._pair_edges, self._pair_faces, self._fixed_edges = _edge_adjacency(F, neck)
         self._ray_mesh = None
 
     def mask(self, K: Any, w2c: Any, size: Any) -> np.ndarray:
         """``(H, W)`` bool silhouette seen by ``K (3, 3)``, ``w2c (4, 4)``; size ``(width, height)`` or int."""
-        import trimesh
+        import cv2
 
         K, w2c = _as_K(K), _as_w2c(w2c)
         width, height = _size_wh(size)
-        mask = np.zeros((height, width), dtype=bool)
-        candidates = _candidate_pixels(self.head_vertices, K, w2c, width, height)
-        if candidates.size == 0:
-            return mask
+        region = _candidate_region(self.head_vertices, K, w2c, width, height)  # (H, W) uint8, 0 or 1
+        candidates = np.flatnonzero(region)
+        dirty = None
+        if candidates.size > DIRECT_CAST_PIXELS:
+            dirty = self._contour_blocks(K, w2c, width, height)  # None: the mesh reaches behind the camera
+        mask = np.zeros(height * width, dtype=bool)
+        if dirty is None:
+            mask[candidates] = self._cast(K, w2c, candidates, width)
+            return mask.reshape(height, width)
+        block = SILHOUETTE_BLOCK
+        rows, columns = dirty.shape
+        padded = np.ones((rows * block, columns * block), dtype=np.uint8)  # pixels past the edge do not exist
+        padded[:height, :width] = region
+        # Area-averaging 0/1 pixels leaves 1 exactly where a whole block is a candidate.
+        inside = cv2.resize(padded * 255, (columns, rows), interpolation=cv2.INTER_AREA) == 255
+        # A clean block partly outside the hull is all out; one fully inside takes its corner pixel's ray.
+        by, bx = np.nonzero(~dirty & inside)
+        block_in = np.zeros((rows, columns), dtype=np.uint8)
+        block_in[by, bx] = self._cast(K, w2c, (by * block) * width + bx * block, width)
+        blocks = np.where(dirty, 2, block_in).astype(np.uint8)  # 0 out, 1 in, 2 cast every pixel
+        per_pixel = cv2.resize(blocks, (columns * block, rows * block), interpolation=cv2.INTER_NEAREST)
+        per_pixel = per_pixel[:height, :width].reshape(-1)
+        mask[:] = per_pixel == 1
+        cast = np.flatnonzero((per_pixel == 2) & (region.reshape(-1) > 0))
+        mask[cast] = self._cast(K, w2c, cast, width)
+        return mask.reshape(height, width)
+
+    def _cast(self, K: np.ndarray, w2c: np.ndarray, pixels: np.ndarray, width: int) -> np.ndarray:
+        """``(N,)`` bool: the rule for the flat pixel indices ``pixels (N,)``."""
+        import trimesh
+
+        if pixels.size == 0:
+            return np.zeros(0, dtype=bool)
         if self._ray_mesh is None:
             self._ray_mesh = trimesh.Trimesh(vertices=self.vertices, faces=self.faces, process=False)
-        v, u = np.divmod(candidates, width)
+        v, u = np.divmod(pixels, width)
         origins, dirs = _pixel_rays(K, w2c, u.astype(np.float64), v.astype(np.float64))
         first = np.asarray(self._ray_mesh.ray.intersects_first(ray_origins=origins, ray_directions=dirs))
-        hit = first >= 0
-        mask.reshape(-1)[candidates[hit]] = ~self.neck_faces[first[hit]]
-        return mask
+        keep = first >= 0
+        keep[keep] = ~self.neck_faces[first[keep]]
+        return keep
+
+    def _contour_blocks(self, K: np.ndarray, w2c: np.ndarray, width: int, height: int) -> np.ndarray | None:
+        """``(ceil(H / b), ceil(W / b))`` bool: blocks a projected contour edge may cross (grown by one
+        block, so the line drawing cannot miss one); None when a vertex is not in front of the camera."""
+        import cv2
+
+        cam = self.vertices @ w2c[:3, :3].T + w2c[:3, 3]
+        if np.any(cam[:, 2] <= 1e-9):
+            return None
+        centre = -w2c[:3, :3].T @ w2c[:3, 3]
+        facing = np.einsum("fi,fi->f", self._face_normals, centre - self._face_points) > 0
+        turning = facing[self._pair_faces[:, 0]] != facing[self._pair_faces[:, 1]]
+        edges = np.concatenate([self._fixed_edges, self._pair_edges[turning]])
+        block, pad = SILHOUETTE_BLOCK, 2
+        rows, columns = -(-height // block), -(-width // block)
+        # Drawn with a margin: OpenCV's clipping of a segment that leaves the canvas can drop its last
+        # cells, which must not be cells of the image.
+        dirty = np.zeros((rows + 2 * pad, columns + 2 * pad), dtype=np.uint8)
+        if edges.size:
+            px = cam[:, :2] / cam[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
+            if np.abs(px[edges]).max() > 1e6:  # beyond the fixed-point range of the drawing
+                return np.ones((rows, columns), dtype=bool)
+            # Block (i, j) holds pixels [j b, j b + b) × [i b, i b + b); its centre is at block coordinate j.
+            segments = np.round(((px[edges] + 0.5) / block - 0.5 + pad) * 16).astype(np.int32)
+            cv2.polylines(dirty, segments, isClosed=False, color=1, thickness=1, lineType=cv2.LINE_8, shift=4)
+            dirty = cv2.dilate(dirty, np.ones((3, 3), np.uint8))
+        return dirty[pad : pad + rows, pad : pad + columns].astype(bool)
 
 
-def _candidate_pixels(
+def _edge_adjacency(faces: np.ndarray, neck: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Edges of a triangle mesh ``faces (F, 3)`` for contour tests.
+
+    Returns ``(pair_edges (E, 2), pair_faces (E, 2), fixed_edges (M, 2))``: the edges shared by exactly
+    two faces, with those faces (a contour when they face opposite ways), and the edges that are always
+    contours: boundary and non-manifold edges, and edges between a neck face and a head face.
+    """
+    if faces.size == 0:
+        empty = np.zeros((0, 2), dtype=np.int64)
+        return empty, empty, empty
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    owner = np.repeat(np.arange(len(faces)), 3)
+    key = edges[:, 0] * (int(faces.max()) + 1) + edges[:, 1]
+    order = np.argsort(key, kind="stable")
+    key, edges, owner = key[order], edges[order], owner[order]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    counts = np.diff(np.r_[starts, len(key)])
+    paired = starts[counts == 2]
+    pair_edges = edges[paired]
+    pair_faces = np.stack([owner[paired], owner[paired + 1]], axis=1)
+    neck_line = neck[pair_faces[:, 0]] != neck[pair_faces[:, 1]]
+    fixed = np.concatenate([edges[starts[counts != 2]], pair_edges[neck_line]])
+    return pair_edges[~neck_line], pair_faces[~neck_line], fixed
+
+
+def _candidate_region(
     points: np.ndarray, K: np.ndarray, w2c: np.ndarray, width: int, height: int
 ) -> np.ndarray:
-    """Flat indices ``(N,)`` of the pixels whose centres may see a triangle of ``points (P, 3)``.
+    """``(H, W)`` uint8, 1 at the pixels whose centres may see a triangle of ``points (P, 3)``.
 
     With every point in front of the camera, a triangle projects inside the convex hull of the projected
     points: the hull is filled (boundary pixels included, then grown by one pixel against round-off).
@@ -274,23 +375,22 @@ def _candidate_pixels(
     """
     import cv2
 
+    region = np.zeros((height, width), dtype=np.uint8)
     if points.shape[0] == 0:
-        return np.zeros(0, dtype=np.int64)
+        return region
     cam = points @ w2c[:3, :3].T + w2c[:3, 3]
     if np.any(cam[:, 2] <= 1e-9):
-        return np.arange(width * height)
+        return np.ones_like(region)
     px = cam[:, :2] / cam[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
     lo = np.array([px[:, 0].min(), px[:, 1].min()])
     hi = np.array([px[:, 0].max(), px[:, 1].max()])
     if hi[0] < -1 or hi[1] < -1 or lo[0] > width or lo[1] > height:
-        return np.zeros(0, dtype=np.int64)
+        return region
     if np.abs(px).max() > 1e6:  # beyond the fixed-point range of the hull fill: cast everything
-        return np.arange(width * height)
+        return np.ones_like(region)
     hull = cv2.convexHull(np.round(px * 16).astype(np.int32))
-    region = np.zeros((height, width), dtype=np.uint8)
     cv2.fillConvexPoly(region, hull, 1, lineType=cv2.LINE_8, shift=4)
-    region = cv2.dilate(region, np.ones((3, 3), np.uint8))
-    return np.flatnonzero(region)
+    return cv2.dilate(region, np.ones((3, 3), np.uint8))
 
 
 def mesh_mask(vertices: Any, faces: Any, neck_face_mask: Any, K: Any, w2c: Any, size: Any) -> np.ndarray:

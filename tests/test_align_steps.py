@@ -258,9 +258,12 @@ def _every_pixel_ray_cast(mesh: trimesh.Trimesh, neck: np.ndarray, K, w2c, size:
     return keep.reshape(size, size)
 
 
-def test_silhouette_casts_only_inside_the_head_hull_and_loses_no_pixel():
+@pytest.mark.parametrize("direct_cast_pixels", [16384, 0], ids=["hull", "hull+contour-blocks"])
+def test_silhouette_casts_fewer_rays_and_loses_no_pixel(monkeypatch, direct_cast_pixels):
     # An uneven head-like shape (a bumpy ellipsoid with a "neck" band), seen from many sides and
-    # distances, some views cropped so the head leaves the image: the culled cast equals the full one.
+    # distances, some views cropped so the head leaves the image: the culled cast equals the full one,
+    # with every candidate cast and with one ray per block away from the contour edges.
+    monkeypatch.setattr("relightanyone.ingest.steps.DIRECT_CAST_PIXELS", direct_cast_pixels)
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
     rng = np.random.default_rng(3)
     bumps = 1.0 + 0.15 * np.sin(7 * sphere.vertices[:, 0] / 0.1) * np.cos(5 * sphere.vertices[:, 1] / 0.1)
@@ -268,11 +271,11 @@ def test_silhouette_casts_only_inside_the_head_hull_and_loses_no_pixel():
     neck = sphere.triangles_center[:, 1] < -0.04
     silhouette = MeshSilhouette(vertices, sphere.faces, neck)
     mesh = trimesh.Trimesh(vertices, sphere.faces, process=False)
-    for _ in range(12):
+    for _ in range(16):
         direction = rng.normal(size=3)
         eye = direction / np.linalg.norm(direction) * rng.uniform(0.25, 0.8)
         w2c = _look_at(eye, rng.normal(size=3) * 0.05)
-        size = int(rng.choice([48, 64, 96]))
+        size = int(rng.choice([48, 64, 97, 130]))  # not all multiples of the block side
         focal = size * rng.uniform(0.8, 2.5)
         K = np.array([[focal, 0, size / 2 + rng.uniform(-30, 30)], [0, focal, size / 2], [0, 0, 1]])
         expected = _every_pixel_ray_cast(mesh, neck, K, w2c, size)
