@@ -139,20 +139,25 @@ def render_point_lights(avatar, cameras, lights: PointLights) -> torch.Tensor:
     avatar and the single-stage one): the reflectance is decoded once per view and the L relit colours are
     splatted as 3L feature channels.
     """
-    from relightanyone.model.avatar import check_pinhole_cameras, relight_views
-
-    width, height = check_pinhole_cameras(cameras)
     singles = [
         PointLights(lights.positions[k : k + 1], lights.intensities[k : k + 1]) for k in range(len(lights))
     ]
+    return render_lightings(avatar, cameras, singles)
+
+
+def render_lightings(avatar, cameras, lightings: list[PointLights]) -> torch.Tensor:
+    """The avatar in ``cameras`` under each of P light sets -> (P, V, 3, H, W), all in one pass."""
+    from relightanyone.model.avatar import check_pinhole_cameras, relight_views
+
+    width, height = check_pinhole_cameras(cameras)
     return relight_views(
         avatar,
         cameras.w2c.float(),
         cameras.K.float(),
         width,
         height,
-        singles,
-        lightings_per_pass=len(singles),
+        lightings,
+        lightings_per_pass=len(lightings),
     )
 
 
@@ -167,22 +172,11 @@ def render_weighted_rig(avatar, cameras, cases: list[LightCase]) -> torch.Tensor
     its low-order transfer gives lights behind the head, which cancel in a joint render, would each be
     clamped to zero and the sum would come out too bright.
     """
-    from relightanyone.model.avatar import check_pinhole_cameras, relight_views
-
-    width, height = check_pinhole_cameras(cameras)
     lightings = []
     for case in cases:
         weights = torch.as_tensor(case.weights, dtype=torch.float32)
         lightings.append(PointLights(case.basis.positions, case.basis.intensities.float() * weights))
-    return relight_views(
-        avatar,
-        cameras.w2c.float(),
-        cameras.K.float(),
-        width,
-        height,
-        lightings,
-        lightings_per_pass=len(cases),
-    )
+    return render_lightings(avatar, cameras, lightings)
 
 
 def compare(avatar, cases: list[LightCase], lpips) -> Comparison:
