@@ -39,6 +39,18 @@ def test_codec_round_trip_is_close_and_float32(encoding):
     assert np.abs(decoded - image).max() <= tolerance
 
 
+def test_raw_f16_bytes_are_numpys_float16_rounding():
+    # The fast conversion must round like numpy (to nearest even), across the whole half range:
+    # subnormals, ties, the largest finite value and a value that rounds to it.
+    rng = np.random.default_rng(7)
+    values = rng.random(30_000).astype(np.float32) * np.float32(2.0) ** rng.integers(-26, 16, 30_000)
+    values[:6] = [2.0**-24 * 0.5, 2.0**-24 * 1.5, 2.0**-14, 1.0 + 2.0**-11, 65504.0, 65490.0]
+    image = values.reshape(100, 100, 3)
+    data = encode_image(image, "raw-f16")
+    assert data[16:] == image.astype("<f2").tobytes()
+    assert np.array_equal(decode_image(data, "raw-f16"), image.astype("<f2").astype(np.float32))
+
+
 def test_png16_clips_above_its_linear_range_and_encoding_is_deterministic():
     image = np.full((4, 4, 3), 10.0, np.float32)
     assert np.allclose(decode_image(encode_image(image, "png16"), "png16"), PNG16_LINEAR_MAX)
