@@ -3,7 +3,6 @@ check that every picture of the page decodes (and that the check notices one tha
 
 from __future__ import annotations
 
-import hashlib
 import json
 import re
 import shutil
@@ -18,14 +17,19 @@ from relightanyone.pipelines.report_browser import BrowserUnavailable, check_in_
 from relightanyone.pipelines.report_command import report_command
 from relightanyone.pipelines.report_html import markdown_to_html, rewrite_links
 from relightanyone.pipelines.report_metrics import metrics_tables
-from sphere_world import LIGHTS, SIZE, lambert_sphere, sphere_camera, write_flat_world, write_olat_world
+from sphere_world import (
+    LIGHTS,
+    lambert_sphere,
+    sphere_camera,
+    sphere_row,
+    write_flat_world,
+    write_olat_world,
+)
 
-from relightanyone.format.codecs import encode_image, encode_mask
 from relightanyone.format.schema import (
     DatasetInfo,
     LightRow,
     Provenance,
-    build_image_row,
     fingerprint_config,
 )
 from relightanyone.format.shards import ShardWriter
@@ -91,26 +95,7 @@ def write_expanded_world(root: Path) -> Path:
             lightings["env-studio"] = (LIGHTS[[0, 2]], [[1.5, 1.2, 1.0]] * 2)
             for pattern, (positions, intensities) in lightings.items():
                 image, mask = lambert_sphere(1.0, (0.6, 0.5, 0.4), K, w2c, positions, intensities)
-                source = f"x00/{pattern}/cam{c:02d}"
-                part.add(
-                    build_image_row(
-                        dataset="expanded",
-                        subject="x00",
-                        frame=0,
-                        camera=f"cam{c:02d}",
-                        pattern=pattern,
-                        split="test",
-                        K=K,
-                        w2c=w2c,
-                        image=encode_image(image),
-                        image_encoding="raw-f16",
-                        mask=encode_mask(mask),
-                        width=SIZE,
-                        height=SIZE,
-                        source=source,
-                        source_sha256=hashlib.sha256(source.encode()).hexdigest(),
-                    )
-                )
+                part.add(sphere_row("expanded", "x00", c, pattern, "test", image, mask))
     writer.commit()
     return folder
 
