@@ -58,6 +58,20 @@ def _size_wh(size: Any) -> tuple[int, int]:
     return width, height
 
 
+# Points closer to the camera plane than this (camera z, in the points' units) count as behind it.
+NEAR_PLANE = 1e-9
+
+
+def _camera_points(points: np.ndarray, w2c: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` world points in camera coordinates."""
+    return points @ w2c[:3, :3].T + w2c[:3, 3]
+
+
+def _pinhole_pixels(camera_points: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` pixels of ``(N, 3)`` camera-space points in front of a zero-skew pinhole ``K``."""
+    return camera_points[:, :2] / camera_points[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
+
+
 def project_points(points: Any, K: Any, w2c: Any, dist: Any = None) -> np.ndarray:
     """Project world points to pixels.
 
@@ -74,8 +88,7 @@ def project_points(points: Any, K: Any, w2c: Any, dist: Any = None) -> np.ndarra
     if pts.shape[0] == 0:
         return np.zeros((0, 2))
     if not dist.any():  # plain pinhole: a few array operations, much cheaper than cv2.projectPoints
-        cam = pts @ w2c[:3, :3].T + w2c[:3, 3]
-        return cam[:, :2] / cam[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
+        return _pinhole_pixels(_camera_points(pts, w2c), K)
     rvec, _ = cv2.Rodrigues(w2c[:3, :3])
     pixels, _ = cv2.projectPoints(pts, rvec, w2c[:3, 3], K, dist if dist.size else None)
     return pixels.reshape(-1, 2)
@@ -315,11 +328,12 @@ class MeshSilhouette:
         """``(ceil(H / b), ceil(W / b))`` bool: blocks a projected contour edge may cross (grown by one
         block, so the line drawing cannot miss one); None when a vertex is not in front of the camera."""
         import cv2
+        from relightanyone.align.geometry import camera_centre
 
-        cam = self.vertices @ w2c[:3, :3].T + w2c[:3, 3]
-        if np.any(cam[:, 2] <= 1e-9):
+        cam = _camera_points(self.vertices, w2c)
+        if np.any(cam[:, 2] <= NEAR_PLANE):
             return None
-        centre = -w2c[:3, :3].T @ w2c[:3, 3]
+        centre = camera_centre(w2c)
         facing = np.einsum("fi,fi->f", self._face_normals, centre - self._face_points) > 0
         turning = facing[self._pair_faces[:, 0]] != facing[self._pair_faces[:, 1]]
         edges = np.concatenate([self._fixed_edges, self._pair_edges[turning]])
@@ -329,7 +343,7 @@ class MeshSilhouette:
         # cells, which must not be cells of the image.
         dirty = np.zeros((rows + 2 * pad, columns + 2 * pad), dtype=np.uint8)
         if edges.size:
-            px = cam[:, :2] / cam[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
+            px = _pinhole_pixels(cam, K)
             if np.abs(px[edges]).max() > 1e6:  # beyond the fixed-point range of the drawing
                 return np.ones((rows, columns), dtype=bool)
             # Block (i, j) holds pixels [j b, j b + b) × [i b, i b + b); its centre is at block coordinate j.
@@ -378,10 +392,10 @@ def _candidate_region(
     region = np.zeros((height, width), dtype=np.uint8)
     if points.shape[0] == 0:
         return region
-    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
-    if np.any(cam[:, 2] <= 1e-9):
+    cam = _camera_points(points, w2c)
+    if np.any(cam[:, 2] <= NEAR_PLANE):
         return np.ones_like(region)
-    px = cam[:, :2] / cam[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
+    px = _pinhole_pixels(cam, K)
     lo = np.array([px[:, 0].min(), px[:, 1].min()])
     hi = np.array([px[:, 0].max(), px[:, 1].max()])
     if hi[0] < -1 or hi[1] < -1 or lo[0] > width or lo[1] > height:
