@@ -9,7 +9,9 @@ Camera conventions follow DESIGN §3: OpenCV pinhole (x right, y down, z forward
 
 from __future__ import annotations
 
+import functools
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -230,58 +232,115 @@ SILHOUETTE_BLOCK = 4
 # Up to this many candidate pixels every one is cast: finding the contour blocks costs about 1.5 ms,
 # more than it saves on small crops (measured: 128² crops, 2.5 ms direct; 1024², 124 ms vs 39 ms).
 DIRECT_CAST_PIXELS = 16384
+SILHOUETTE_SOURCES = [Path(__file__).resolve().parent / "csrc" / "mesh_silhouette.cpp"]
+SILHOUETTE_CFLAGS = ["-O3", "-march=native", "-std=c++17"]
+SILHOUETTE_METHODS = ("auto", "depth-buffer", "rays")
+
+
+@functools.lru_cache(maxsize=1)
+def load_silhouette_kernel():
+    """The compiled depth-buffer silhouette (``ingest/csrc/mesh_silhouette.cpp``), or None (with a warning)
+    when it cannot be built."""
+    from relightanyone.compiled import load_extension
+
+    return load_extension(
+        "relightanyone_silhouette",
+        SILHOUETTE_SOURCES,
+        SILHOUETTE_CFLAGS,
+        [],
+        "mesh-silhouette",
+        "masks are cast one ray per pixel instead (same masks, several times slower)",
+    )
 
 
 class MeshSilhouette:
     """Silhouette of one mesh, cut below the neck line, seen by any pinhole camera.
 
-    The rule is one ray per pixel centre (trimesh, with the embree backend when installed): a pixel is in
-    when the first face its ray hits is not flagged in ``neck_faces``, so the neck and anything seen
-    through it are excluded while the chin in front of the neck is kept. The answer is the same, with far
-    fewer rays:
+    The rule is one ray per pixel centre: a pixel is in when the first face its ray hits is not flagged in
+    ``neck_faces``, so the neck and anything seen through it are excluded while the chin in front of the
+    neck is kept. Two ways to evaluate it, with the same answer:
 
-    * only pixels inside the convex hull of the projected head (non-neck) vertices can be in;
-    * the answer changes from one pixel to the next only across the projection of a *contour edge*: a
-      silhouette edge (its two faces face opposite ways from the camera), a boundary or non-manifold edge,
-      or an edge on the neck line. Blocks of ``SILHOUETTE_BLOCK``² pixels that no contour edge crosses
-      take the answer of one ray; the others cast every pixel (crops with more than
-      ``DIRECT_CAST_PIXELS`` candidates; smaller ones cast every candidate).
+    * ``"depth-buffer"`` (the compiled kernel): every face is drawn over the pixel centres inside its
+      projection, nearest depth wins. For faces in front of a pinhole camera this is the ray rule exactly,
+      and costs 0.4 ms at 128² and 4.5 ms at 1024² for the 7,776-face template (rays: 2.2 and 32 ms). It
+      needs every vertex in front of the camera.
+    * ``"rays"`` (trimesh, with the embree backend when installed), with far fewer rays than pixels: only
+      pixels inside the convex hull of the projected head (non-neck) vertices can be in; the answer changes
+      from one pixel to the next only across the projection of a *contour edge* (a silhouette edge, whose
+      two faces face opposite ways from the camera, a boundary or non-manifold edge, or an edge on the neck
+      line), so blocks of ``SILHOUETTE_BLOCK``² pixels that no contour edge crosses take the answer of one
+      ray, and the others cast every pixel (crops with more than ``DIRECT_CAST_PIXELS`` candidates; smaller
+      ones cast every candidate). The ray structure and edge adjacency are built once per mesh.
 
-    The ray-casting structure and the edge adjacency are built once, so one mesh seen by many cameras (a
-    frame of a multi-view rig) pays them once.
+    ``"auto"`` uses the depth buffer when the kernel is available and the mesh is in front of the camera,
+    rays otherwise.
 
     Args:
         vertices: ``(V, 3)`` canonical-space vertices; faces: ``(F, 3)`` int.
         neck_faces: ``(F,)`` bool, True for faces below the neck line; None keeps every face.
+        method: ``"auto"``, ``"depth-buffer"`` (an error where it cannot apply) or ``"rays"``.
     """
 
-    def __init__(self, vertices: Any, faces: Any, neck_faces: Any = None):
+    def __init__(self, vertices: Any, faces: Any, neck_faces: Any = None, method: str = "auto"):
         V = np.asarray(vertices, dtype=np.float64)
         F = np.asarray(faces, dtype=np.int64)
         if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3:
             raise ValueError(f"vertices must be (V, 3) and faces (F, 3), got {V.shape} and {F.shape}")
         if F.size and (F.min() < 0 or F.max() >= V.shape[0]):
             raise ValueError(f"faces index vertices outside 0..{V.shape[0] - 1}")
+        if method not in SILHOUETTE_METHODS:
+            raise ValueError(f"method must be one of {', '.join(SILHOUETTE_METHODS)}, got {method!r}")
         if neck_faces is None:
             neck = np.zeros(F.shape[0], dtype=bool)
         else:
             neck = np.asarray(neck_faces, dtype=bool).reshape(-1)
             if neck.shape != (F.shape[0],):
                 raise ValueError(f"neck_face_mask must be ({F.shape[0]},) bool, got {neck.shape}")
-        self.vertices, self.faces, self.neck_faces = V, F, neck
+        self.vertices, self.faces, self.neck_faces, self.method = V, np.ascontiguousarray(F), neck, method
         self.head_vertices = V[np.unique(F[~neck])] if F.size else V[:0]
-        corners = V[F] if F.size else np.zeros((0, 3, 3))
-        self._face_points = corners[:, 0]
-        self._face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        self._pair_edges, self._pair_faces, self._fixed_edges = _edge_adjacency(F, neck)
+        self._neck_flags = neck.astype(np.uint8)
+        self._rays_ready = False
         self._ray_mesh = None
 
     def mask(self, K: Any, w2c: Any, size: Any) -> np.ndarray:
         """``(H, W)`` bool silhouette seen by ``K (3, 3)``, ``w2c (4, 4)``; size ``(width, height)`` or int."""
-        import cv2
-
         K, w2c = _as_K(K), _as_w2c(w2c)
         width, height = _size_wh(size)
+        if self.method != "rays":
+            kernel = load_silhouette_kernel()
+            cam = _camera_points(self.vertices, w2c)
+            in_front = bool(np.all(cam[:, 2] > NEAR_PLANE))
+            if kernel is not None and in_front:
+                flags = kernel.first_hit_mask(
+                    cam, self.faces, self._neck_flags, K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height
+                )
+                return flags.view(bool)
+            if self.method == "depth-buffer":
+                raise ValueError(
+                    "the depth-buffer silhouette "
+                    + (
+                        "needs every vertex in front of the camera"
+                        if kernel is not None
+                        else "kernel is not built"
+                    )
+                )
+        return self._ray_mask(K, w2c, width, height)
+
+    def _prepare_rays(self) -> None:
+        """Face normals and contour-edge adjacency for the ray path, built on its first use."""
+        F = self.faces
+        corners = self.vertices[F] if F.size else np.zeros((0, 3, 3))
+        self._face_points = corners[:, 0]
+        self._face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        self._pair_edges, self._pair_faces, self._fixed_edges = _edge_adjacency(F, self.neck_faces)
+        self._rays_ready = True
+
+    def _ray_mask(self, K: np.ndarray, w2c: np.ndarray, width: int, height: int) -> np.ndarray:
+        """The ray path of :meth:`mask`: ``(H, W)`` bool."""
+        import cv2
+
+        if not self._rays_ready:
+            self._prepare_rays()
         region = _candidate_region(self.head_vertices, K, w2c, width, height)  # (H, W) uint8, 0 or 1
         candidates = np.flatnonzero(region)
         dirty = None
@@ -408,7 +467,8 @@ def _candidate_region(
 
 
 def mesh_mask(vertices: Any, faces: Any, neck_face_mask: Any, K: Any, w2c: Any, size: Any) -> np.ndarray:
-    """Silhouette of a mesh seen by a pinhole camera, cut below the neck line (:class:`MeshSilhouette`).
+    """Silhouette of a mesh seen by a pinhole camera, cut below the neck line (:class:`MeshSilhouette`,
+    method ``"auto"``).
 
     Args:
         vertices: ``(V, 3)`` canonical-space vertices; faces: ``(F, 3)`` int.

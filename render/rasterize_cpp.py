@@ -2,27 +2,25 @@
 (``project_gaussians.cpp``), tile binning (``bin_tiles.cpp``) and the tile compositor (``rasterize_tiles.cpp``),
 the differentiable ones with their exact backward.
 
-The kernel is compiled with the machine's C++ compiler on first use through ``torch.utils.cpp_extension``
-(``-O3 -march=native -fopenmp``) into ``$RELIGHTANYONE_CACHE`` (default ``~/.cache/relightanyone``)
-``/torch_extensions/<name>``, where the name carries a hash of the sources, the flags and the torch version,
-so an edited source or a new torch rebuilds and an unchanged one loads in milliseconds. A file lock makes
-the first build safe when several processes (pytest-xdist workers) start at once. When no compiler is
-available, :func:`load_tile_kernel` warns once and returns ``None``; callers fall back to the PyTorch path.
+The kernel is compiled on first use (``-O3 -march=native -fopenmp``) and cached by
+:mod:`relightanyone.compiled`. When no compiler is available, :func:`load_tile_kernel` warns once and
+returns ``None``; callers fall back to the PyTorch path.
 """
 
 from __future__ import annotations
 
-import fcntl
 import functools
-import hashlib
-import os
-import warnings
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from relightanyone.compiled import cache_dir, load_extension
+from relightanyone.compiled import extension_name as _extension_name
+
 from .rasterize_torch import Projection, TileBins
+
+__all__ = ["cache_dir", "extension_name", "load_tile_kernel", "tile_kernel_available"]
 
 SOURCES = [
     Path(__file__).resolve().parent / "csrc" / name
@@ -32,83 +30,19 @@ SOURCES = [
 # (never linked, so the process' denormal handling is untouched).
 CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffast-math", "-std=c++17"]
 LDFLAGS = ["-fopenmp"]
-
-
-def cache_dir() -> Path:
-    """Root of the build cache (``$RELIGHTANYONE_CACHE`` or ``~/.cache/relightanyone``)."""
-    return Path(os.environ.get("RELIGHTANYONE_CACHE", Path.home() / ".cache" / "relightanyone"))
+PREFIX = "relightanyone_raster"
 
 
 def extension_name() -> str:
     """Module name keyed by the source, the flags and the torch version."""
-    digest = hashlib.sha256()
-    for source in SOURCES:
-        digest.update(source.read_bytes())
-    digest.update(" ".join(CFLAGS + LDFLAGS).encode())
-    digest.update(torch.__version__.encode())
-    return f"relightanyone_raster_{digest.hexdigest()[:16]}"
+    return _extension_name(PREFIX, SOURCES, CFLAGS, LDFLAGS)
 
 
 @functools.lru_cache(maxsize=1)
 def load_tile_kernel():
     """The compiled module (``project_forward``/``project_backward``, ``bin_tiles``,
     ``composite_forward``/``composite_backward``), or ``None`` if it cannot be built."""
-    name = extension_name()
-    build_dir = cache_dir() / "torch_extensions" / name
-    try:
-        build_dir.mkdir(parents=True, exist_ok=True)
-        from torch.utils.cpp_extension import load
-
-        with open(build_dir / "build.lock", "w") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)  # one process builds, the others wait and then load its result
-            # torch's own build baton: a builder killed mid-build leaves it behind and every later load would
-            # wait for it forever. Under our lock nobody else is building, so any baton here is stale.
-            (build_dir / "lock").unlink(missing_ok=True)
-            try:
-                built = _import_built(name, build_dir / f"{name}.so")
-                if built is not None:
-                    return built
-                return load(
-                    name=name,
-                    sources=[str(source) for source in SOURCES],
-                    extra_cflags=CFLAGS,
-                    extra_ldflags=LDFLAGS,
-                    build_directory=str(build_dir),
-                    verbose=False,
-                )
-            finally:
-                fcntl.flock(lock, fcntl.LOCK_UN)
-    except (
-        Exception
-    ) as error:  # no compiler, no ninja, read-only cache: fall back, but say why and what to do
-        warnings.warn(
-            f"relightanyone: could not build the C++ rasterizer kernel in {build_dir} ({type(error).__name__}: "
-            f"{str(error).strip().splitlines()[-1] if str(error).strip() else error}); using the slower PyTorch "
-            "path. Install a C++ compiler with OpenMP (e.g. g++) and ninja to enable it.",
-            RuntimeWarning,
-            stacklevel=2,
-        )
-        return None
-
-
-def _import_built(name: str, library: Path):
-    """The module from an already built ``library``, or None (absent or unloadable: build it).
-
-    The name carries the hash of sources, flags and torch version, so a library under it is never stale;
-    loading it directly skips ninja's check, which rebuilds whenever another process' environment wrote
-    a different-looking command line into the shared build files (minutes of compiling on a small machine).
-    """
-    import importlib.util
-
-    if not library.is_file():
-        return None
-    try:
-        spec = importlib.util.spec_from_file_location(name, library)
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    except ImportError:
-        return None
-    return module
+    return load_extension(PREFIX, SOURCES, CFLAGS, LDFLAGS, "rasterizer", "using the slower PyTorch path")
 
 
 def tile_kernel_available() -> bool:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import cv2
 import numpy as np
 import pytest
@@ -10,6 +12,7 @@ from relightanyone.ingest.steps import (
     MeshSilhouette,
     crop_box_around_points,
     crop_resize_intrinsics,
+    load_silhouette_kernel,
     mesh_mask,
     project_points,
     undistort_crop_resize,
@@ -258,18 +261,24 @@ def _every_pixel_ray_cast(mesh: trimesh.Trimesh, neck: np.ndarray, K, w2c, size:
     return keep.reshape(size, size)
 
 
-@pytest.mark.parametrize("direct_cast_pixels", [16384, 0], ids=["hull", "hull+contour-blocks"])
-def test_silhouette_casts_fewer_rays_and_loses_no_pixel(monkeypatch, direct_cast_pixels):
+@pytest.mark.parametrize(
+    ("method", "direct_cast_pixels"),
+    [("rays", 16384), ("rays", 0), ("depth-buffer", 0)],
+    ids=["rays-hull", "rays-hull+contour-blocks", "depth-buffer"],
+)
+def test_silhouette_equals_one_ray_per_pixel(monkeypatch, method, direct_cast_pixels):
     # An uneven head-like shape (a bumpy ellipsoid with a "neck" band), seen from many sides and
-    # distances, some views cropped so the head leaves the image: the culled cast equals the full one,
-    # with every candidate cast and with one ray per block away from the contour edges.
+    # distances, some views cropped so the head leaves the image: the culled cast (every candidate cast, or
+    # one ray per block away from the contour edges) and the depth buffer both equal the full cast.
+    if method == "depth-buffer" and load_silhouette_kernel() is None:
+        pytest.skip("the mesh-silhouette kernel could not be built here (no C++ compiler)")
     monkeypatch.setattr("relightanyone.ingest.steps.DIRECT_CAST_PIXELS", direct_cast_pixels)
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
     rng = np.random.default_rng(3)
     bumps = 1.0 + 0.15 * np.sin(7 * sphere.vertices[:, 0] / 0.1) * np.cos(5 * sphere.vertices[:, 1] / 0.1)
     vertices = sphere.vertices * bumps[:, None] * [0.8, 1.2, 0.9]
     neck = sphere.triangles_center[:, 1] < -0.04
-    silhouette = MeshSilhouette(vertices, sphere.faces, neck)
+    silhouette = MeshSilhouette(vertices, sphere.faces, neck, method=method)
     mesh = trimesh.Trimesh(vertices, sphere.faces, process=False)
     for _ in range(16):
         direction = rng.normal(size=3)
@@ -281,3 +290,34 @@ def test_silhouette_casts_fewer_rays_and_loses_no_pixel(monkeypatch, direct_cast
         expected = _every_pixel_ray_cast(mesh, neck, K, w2c, size)
         assert np.array_equal(silhouette.mask(K, w2c, size), expected)
         assert expected.any()
+
+
+def test_depth_buffer_silhouette_refuses_a_mesh_around_the_camera_and_auto_casts_rays():
+    if load_silhouette_kernel() is None:
+        pytest.skip("the mesh-silhouette kernel could not be built here (no C++ compiler)")
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    K = np.array([[100.0, 0, 31.5], [0, 100.0, 31.5], [0, 0, 1]])
+    inside = _look_at(np.array([0.0, 0.0, 0.05]), np.array([0.0, 0.0, 1.0]))
+    with pytest.raises(ValueError, match="in front of the camera"):
+        MeshSilhouette(sphere.vertices, sphere.faces, method="depth-buffer").mask(K, inside, 64)
+    assert MeshSilhouette(sphere.vertices, sphere.faces).mask(K, inside, 64).all()
+    with pytest.raises(ValueError, match="method must be one of"):
+        MeshSilhouette(sphere.vertices, sphere.faces, method="zbuffer")
+
+
+def test_silhouette_without_a_compiler_warns_and_casts_rays(tmp_path, monkeypatch):
+    monkeypatch.setenv("RELIGHTANYONE_CACHE", str(tmp_path))
+    monkeypatch.setenv("CXX", str(tmp_path / "no-such-compiler"))
+    load_silhouette_kernel.cache_clear()
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+            K = np.array([[100.0, 0, 31.5], [0, 100.0, 31.5], [0, 0, 1]])
+            w2c = _look_at(np.array([0.0, 0.1, 0.5]), np.zeros(3))
+            fallback = MeshSilhouette(sphere.vertices, sphere.faces).mask(K, w2c, 64)
+        assert any("cast one ray per pixel instead" in str(w.message) for w in caught)
+        rays = MeshSilhouette(sphere.vertices, sphere.faces, method="rays").mask(K, w2c, 64)
+        assert np.array_equal(fallback, rays) and rays.any()
+    finally:
+        load_silhouette_kernel.cache_clear()
