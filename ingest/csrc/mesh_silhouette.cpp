@@ -44,11 +44,11 @@ inline Affine edge_affine(double ax, double ay, double bx, double by, double sig
 }
 
 // Depth-tests one face over the pixel centres of its projection; inverse_depth and label (H*W) are updated.
-void draw_face(const double* p0, const double* p1, const double* p2, uint8_t face_label, const Pinhole& cam,
-               int64_t width, int64_t height, double* inverse_depth, uint8_t* label) {
-    const double x0 = cam.fx * p0[0] / p0[2] + cam.cx, y0 = cam.fy * p0[1] / p0[2] + cam.cy;
-    const double x1 = cam.fx * p1[0] / p1[2] + cam.cx, y1 = cam.fy * p1[1] / p1[2] + cam.cy;
-    const double x2 = cam.fx * p2[0] / p2[2] + cam.cx, y2 = cam.fy * p2[1] / p2[2] + cam.cy;
+//   p0..p2: the corners in camera coordinates; q0..q2: their pixels (x, y).
+void draw_face(const double* p0, const double* p1, const double* p2, const double* q0, const double* q1,
+               const double* q2, uint8_t face_label, const Pinhole& cam, int64_t width, int64_t height,
+               double* inverse_depth, uint8_t* label) {
+    const double x0 = q0[0], y0 = q0[1], x1 = q1[0], y1 = q1[1], x2 = q2[0], y2 = q2[1];
     const double area = edge(x0, y0, x1, y1, x2, y2);
     if (area == 0.0 || !std::isfinite(area)) return;  // seen edge-on: no ray hits its inside
     const double lo_x = std::max(std::ceil(std::min({x0, x1, x2})), 0.0);
@@ -70,6 +70,9 @@ void draw_face(const double* p0, const double* p1, const double* p2, uint8_t fac
     const Affine w = {n[0] / (cam.fx * offset), n[1] / (cam.fy * offset),
                       (n[2] - n[0] * cam.cx / cam.fx - n[1] * cam.cy / cam.fy) / offset};
     const Affine edges[3] = {e0, e1, e2};
+    // -1 / du of each edge, so that a row's bounds cost no division (the exact test below has the last word).
+    double step[3];
+    for (int k = 0; k < 3; ++k) step[k] = edges[k].du != 0.0 ? -1.0 / edges[k].du : 0.0;
     const int64_t u_lo = static_cast<int64_t>(lo_x), u_hi = static_cast<int64_t>(hi_x);
     for (int64_t v = static_cast<int64_t>(lo_y); v <= static_cast<int64_t>(hi_y); ++v) {
         const double pv = static_cast<double>(v);
@@ -83,8 +86,8 @@ void draw_face(const double* p0, const double* p1, const double* p2, uint8_t fac
         // The row's span from the three half-lines, then nudged so that its ends pass the exact test above.
         double span_lo = lo_x, span_hi = hi_x;
         for (int k = 0; k < 3; ++k) {
-            if (edges[k].du > 0.0) span_lo = std::max(span_lo, std::ceil(-row[k] / edges[k].du));
-            else if (edges[k].du < 0.0) span_hi = std::min(span_hi, std::floor(-row[k] / edges[k].du));
+            if (edges[k].du > 0.0) span_lo = std::max(span_lo, std::ceil(row[k] * step[k]));
+            else if (edges[k].du < 0.0) span_hi = std::min(span_hi, std::floor(row[k] * step[k]));
             else if (row[k] < 0.0) span_lo = std::numeric_limits<double>::infinity();
         }
         if (!(span_lo <= span_hi + 2.0)) continue;  // also skips NaN bounds
@@ -129,10 +132,17 @@ py::array_t<uint8_t> first_hit_mask(DoubleArray camera_points, IndexArray faces,
         std::vector<double> inverse_depth(static_cast<size_t>(width * height), 0.0);  // 0: nothing hit
         std::vector<uint8_t> label(static_cast<size_t>(width * height), 0);  // 0 no hit, 1 kept, 2 excluded
         const Pinhole cam{fx, fy, cx, cy};
+        std::vector<double> pixels(static_cast<size_t>(2 * vertex_count));  // each vertex projected once
+        for (int64_t i = 0; i < vertex_count; ++i) {
+            const double* p = points + 3 * i;
+            pixels[2 * i] = fx * p[0] / p[2] + cx;
+            pixels[2 * i + 1] = fy * p[1] / p[2] + cy;
+        }
+        const double* q = pixels.data();
         for (int64_t f = 0; f < face_count; ++f) {
             const int64_t* tri = index + 3 * f;
-            draw_face(points + 3 * tri[0], points + 3 * tri[1], points + 3 * tri[2], skip[f] ? 2 : 1, cam, width,
-                      height, inverse_depth.data(), label.data());
+            draw_face(points + 3 * tri[0], points + 3 * tri[1], points + 3 * tri[2], q + 2 * tri[0], q + 2 * tri[1],
+                      q + 2 * tri[2], skip[f] ? 2 : 1, cam, width, height, inverse_depth.data(), label.data());
         }
         for (int64_t i = 0; i < width * height; ++i) out[i] = label[i] == 1;
     }
