@@ -129,6 +129,10 @@ def _adapter_command(command_name: str, module_name: str) -> click.Command:
         executor,
         dry_run,
     ):
+        if executor == "local" and not dry_run:
+            from .executors import warm_local_pool
+
+            warm_local_pool(workers)  # the workers' imports overlap the adapter's planning
         from .records import AdapterOptions, LayoutError
         from .runner import found_lines, ingest_dataset, prepare
 

@@ -1,4 +1,5 @@
-"""The local executor keeps its process pool between calls and replaces a broken one; the template cache,
+"""The local executor keeps its process pool between calls, can start it ahead of the tasks, and replaces a
+broken one; the template cache,
 which pool workers keep across ingests, follows the file it was read from."""
 
 from __future__ import annotations
@@ -7,7 +8,7 @@ import os
 
 import numpy as np
 import pytest
-from relightanyone.ingest.executors import map_items, shutdown_pools
+from relightanyone.ingest.executors import map_items, shutdown_pools, warm_local_pool
 from relightanyone.ingest.tracking import load_template
 from relightanyone.synth.template import make_template, write_obj, write_template
 
@@ -32,6 +33,23 @@ def test_pool_workers_are_kept_between_calls_and_a_broken_pool_is_replaced():
             map_items(_die, ["die", "x"], workers=2)
         after = set(map_items(_pid, list(range(6)), workers=2))
         assert after and not (after & first)  # a fresh pool took over
+    finally:
+        shutdown_pools()
+
+
+def test_warmed_pool_is_the_one_the_tasks_run_on():
+    try:
+        assert warm_local_pool(1) is None  # one worker runs in this process: nothing to start
+        thread = warm_local_pool(2)
+        thread.join(timeout=120)
+        assert not thread.is_alive()
+        from relightanyone.ingest import executors
+
+        warmed = executors._POOLS[2][1]
+        pids = set(map_items(_pid, list(range(6)), workers=2))
+        assert executors._POOLS[2][1] is warmed  # no second pool was started
+        assert pids and os.getpid() not in pids
+        assert {p.pid for p in warmed._processes.values()} >= pids
     finally:
         shutdown_pools()
 
