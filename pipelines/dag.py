@@ -10,7 +10,11 @@ After a stage's command succeeds, the runner writes ``<output>/_stage.json`` ato
 output files, start and end time. A stage is skipped when that record exists, its fingerprint (config +
 input digests + package version) is unchanged and its output files still hash to the recorded digest.
 Before a stage runs, its old record is deleted first, so a run interrupted at any point (even by SIGKILL)
-leaves no record and the stage runs again next time; stage commands resume their own partial work.
+leaves no record and the stage runs again next time. Stage commands resume their own partial work (a
+training checkpoint, an ingest's finished subjects, existing avatars), which is right only for work of the
+same config and inputs: an output left by a completed run (the stage runs again because something
+changed, or ``--force``) or by an unfinished run of another fingerprint (``attempt_path``) is removed
+before the command starts, and only an unfinished run of the same fingerprint is resumed.
 """
 
 from __future__ import annotations
@@ -35,11 +39,14 @@ from .stage_record import (
     RECORD_FORMAT,
     STAGE_LOG_NAME,
     STAGE_RECORD_NAME,
+    attempt_path,
     live_log_path,
     package_version,
+    read_attempt,
     read_record,
     stage_config,
     stage_fingerprint,
+    write_attempt,
     write_record,
 )
 from .yaml_io import PipelineError, PipelineSpec, StageSpec, parse_pipeline
@@ -327,14 +334,33 @@ def _now() -> str:
     return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
 
 
-def _prepare_output(output: Path) -> None:
-    """Delete the old record first (a partial run must never look complete), then the old log."""
+def _prepare_output(output: Path, fingerprint: str, pipeline_source: Path) -> None:
+    """Make ``output`` ready for a run of ``fingerprint``: stale work removed, old record and logs deleted
+    first (a partial run must never look complete), the attempt marked."""
+    if output.is_dir() and (
+        read_record(output) is not None or read_attempt(output) not in (None, fingerprint)
+    ):
+        _remove_stale_output(output, pipeline_source)
     output.mkdir(parents=True, exist_ok=True)
+    write_attempt(output, fingerprint)
     (output / STAGE_RECORD_NAME).unlink(missing_ok=True)
     (output / STAGE_LOG_NAME).unlink(missing_ok=True)
     live_log_path(output).unlink(missing_ok=True)  # left by a runner that was killed
     for leftover in output.glob("_stage.json.*.tmp"):
         leftover.unlink(missing_ok=True)
+
+
+def _remove_stale_output(output: Path, pipeline_source: Path) -> None:
+    """Delete a stage's stale output folder, refusing folders that obviously hold more than one stage's
+    results (a filesystem root, the home folder, the working folder or the pipeline file's folder)."""
+    resolved = output.resolve()
+    protected = [Path(resolved.anchor), Path.home().resolve(), Path.cwd().resolve()]
+    if resolved in protected or Path(pipeline_source).resolve().is_relative_to(resolved):
+        raise StageFailed(
+            f"stage output {output} holds results of another config or inputs, which the stage would resume "
+            "from, but it is too broad a folder to clear; give the stage an output folder of its own"
+        )
+    shutil.rmtree(output)
 
 
 def run_stage(
@@ -350,7 +376,10 @@ def run_stage(
         raise StageFailed(
             f"stage {stage.name!r}: input {missing[0]} does not exist (did an upstream stage fail?)"
         )
-    _prepare_output(stage.output)
+    digests = {path: fingerprint.digest for path, fingerprint in inputs.items()}
+    _prepare_output(
+        stage.output, stage_fingerprint(stage_config(stage), digests, package_version()), pipeline.spec.source
+    )
     argv = stage_argv(stage.kind, stage.args)
     started, clock = _now(), time.perf_counter()
     log_path = live_log_path(stage.output)
@@ -381,6 +410,7 @@ def run_stage(
         command=argv, started=started, finished=_now(), elapsed_s=round(time.perf_counter() - clock, 3)
     )
     write_record(stage.output, record)
+    attempt_path(stage.output).unlink(missing_ok=True)
     return record
 
 

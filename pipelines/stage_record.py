@@ -26,6 +26,30 @@ def live_log_path(output: Path) -> Path:
     return Path(output).parent / f".{Path(output).name}{STAGE_LOG_NAME}"
 
 
+def attempt_path(output: Path) -> Path:
+    """Beside the output (like the live log): the fingerprint of the run that last started writing into it.
+
+    It is written before the command starts and removed when the record is written, so its presence
+    means an interrupted or failed run, and its content says whether that run's partial work belongs to
+    the same config and inputs (:func:`read_attempt`)."""
+    return Path(output).parent / f".{Path(output).name}_stage.attempt"
+
+
+def read_attempt(output: Path) -> str | None:
+    """The fingerprint of the unfinished run that last wrote into ``output``, or None."""
+    try:
+        return attempt_path(output).read_text(encoding="utf-8").strip() or None
+    except OSError:
+        return None
+
+
+def write_attempt(output: Path, fingerprint: str) -> None:
+    path = attempt_path(output)
+    temporary = path.with_name(path.name + ".tmp")
+    temporary.write_text(fingerprint + "\n", encoding="utf-8")
+    os.replace(temporary, path)
+
+
 def package_version() -> str:
     from relightanyone import __version__
 

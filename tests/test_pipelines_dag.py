@@ -33,6 +33,17 @@ out, value, note, *inputs = sys.argv[1:]
 if value == "fail":
     print("failing on purpose", flush=True)
     sys.exit(3)
+if value.startswith("resumable"):
+    # Like a trainer with a checkpoint: work already in the folder is kept, not redone.
+    done = pathlib.Path(out) / "checkpoint.txt"
+    if not done.exists():
+        done.write_text(value)
+        if value.endswith("-crash"):
+            print("crashed after the checkpoint", flush=True)
+            sys.exit(4)
+    (pathlib.Path(out) / "result.txt").write_text(done.read_text())
+    print("wrote", out, flush=True)
+    sys.exit(0)
 text = value + "".join(pathlib.Path(p).read_text() for p in inputs)
 (pathlib.Path(out) / "result.txt").write_text(text)
 print("wrote", out, flush=True)
@@ -147,6 +158,59 @@ def test_tampered_or_missing_output_reruns(pipeline_file):
     assert results["double"].status == "ran" and "missing: result.txt" in results["double"].reason
     assert results["make"].status == "skipped"
     assert (out / "side" / "result.txt").read_text() == "side"
+
+
+def test_a_stage_that_runs_again_does_not_resume_work_of_another_config(pipeline_file):
+    make = pipeline_file.parent / "out" / "make"
+    run(pipeline_file, value="resumable-a")
+    assert (make / "result.txt").read_text() == "resumable-a"
+    # Changed config: the completed output is stale, so the command's own resume finds nothing to keep.
+    assert run(pipeline_file, value="resumable-b")["make"].reason == "config changed"
+    assert (make / "result.txt").read_text() == "resumable-b"
+    # --force means "do it again", not "resume the finished run".
+    (make / "checkpoint.txt").write_text("stale")
+    (make / "extra.txt").write_text("left by the old run")
+    run(pipeline_file, value="resumable-b", force=["make"])
+    assert (make / "result.txt").read_text() == "resumable-b" and not (make / "extra.txt").exists()
+
+
+def test_an_interrupted_stage_resumes_its_own_work_but_not_another_configs(pipeline_file):
+    make = pipeline_file.parent / "out" / "make"
+    with pytest.raises(StageFailed, match="exit status 4"):
+        run(pipeline_file, value="resumable-x-crash")
+    assert (make / "checkpoint.txt").read_text() == "resumable-x-crash"
+    # The same config again: the partial work is resumed (the checkpoint is not redone).
+    results = run(pipeline_file, value="resumable-x-crash")
+    assert results["make"].reason.startswith("no complete _stage.json")
+    assert (make / "result.txt").read_text() == "resumable-x-crash"
+    assert not list(make.parent.glob(".make_stage.attempt*"))  # a finished run leaves no attempt marker
+    # Interrupted under one config, run again under another: the partial work is not reused.
+    with pytest.raises(StageFailed):
+        run(pipeline_file, value="resumable-y-crash", force=["make"])
+    run(pipeline_file, value="resumable-z")
+    assert (make / "result.txt").read_text() == "resumable-z"
+
+
+def test_a_stale_output_that_is_too_broad_is_not_deleted(tmp_path):
+    step = tmp_path / "step.py"
+    step.write_text(STEP_SCRIPT)
+    path = tmp_path / "pipe.yaml"
+    path.write_text(
+        textwrap.dedent(
+            f"""
+            vars:
+              value: "1"
+            stages:
+              make:
+                command: ["${{python}}", "-S", "{step}", "${{output}}", "${{value}}", "-"]
+                output: {tmp_path}
+            """
+        )
+    )
+    run(path)
+    with pytest.raises(StageFailed, match="too broad a folder to clear"):
+        run(path, value="2")  # its output holds the pipeline file itself
+    assert path.exists() and step.exists()
 
 
 def test_force_reruns_the_stage_and_everything_downstream(pipeline_file):
