@@ -129,10 +129,6 @@ def _adapter_command(command_name: str, module_name: str) -> click.Command:
         executor,
         dry_run,
     ):
-        if executor == "local" and not dry_run:
-            from .executors import warm_local_pool
-
-            warm_local_pool(workers)  # the workers' imports overlap the adapter's planning
         from .records import AdapterOptions, LayoutError
         from .runner import found_lines, ingest_dataset, prepare
 
@@ -148,6 +144,12 @@ def _adapter_command(command_name: str, module_name: str) -> click.Command:
         )
         try:
             adapter.detect(src)
+            if executor == "local" and not dry_run:
+                from .executors import warm_local_pool
+
+                # After the cheap layout check (a wrong SRC fails at once, with no pool to wait for), so the
+                # workers' imports overlap the planning.
+                warm_local_pool(workers)
             plan = adapter.plan(src, options)
             prepared = prepare(plan, tracking, preset, template, workers=workers, executor=executor)
         except (LayoutError, FileNotFoundError, ValueError) as error:
