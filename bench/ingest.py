@@ -212,12 +212,15 @@ def warm_end_to_end(plan, world: Path, workers: int, preset: str = PRESET, repea
     ``repeats`` > 1, the run of median time, with every run's seconds."""
     warm_plan = make_plan(world, 2)
     end_to_end(warm_plan, world, workers, preset)
-    runs = sorted(
-        (end_to_end(plan, world, workers, preset) for _ in range(repeats)), key=lambda r: r["seconds"]
-    )
-    median = dict(runs[len(runs) // 2])
-    if repeats > 1:
-        median["seconds_of_every_run"] = [r["seconds"] for r in runs]
+    runs = [end_to_end(plan, world, workers, preset) for _ in range(repeats)]
+    return median_run(runs, "seconds") if repeats > 1 else runs[0]
+
+
+def median_run(runs: list[dict], key: str) -> dict:
+    """The run of median ``key``, with every run's ``key`` under ``<key>_of_every_run`` (sorted)."""
+    ordered = sorted(runs, key=lambda r: r[key])
+    median = dict(ordered[len(ordered) // 2])
+    median[f"{key}_of_every_run"] = [r[key] for r in ordered]
     return median
 
 
@@ -249,13 +252,8 @@ def in_fresh_process(world: Path, subjects: int, workers: int) -> dict:
 
 def cold_run(world: Path, subjects: int, workers: int) -> dict:
     """The median (by time with imports) of ``END_TO_END_REPEATS`` cold runs in fresh processes."""
-    runs = sorted(
-        (in_fresh_process(world, subjects, workers) for _ in range(END_TO_END_REPEATS)),
-        key=lambda r: r["seconds_with_imports"],
-    )
-    median = dict(runs[len(runs) // 2])
-    median["seconds_with_imports_of_every_run"] = [r["seconds_with_imports"] for r in runs]
-    return median
+    runs = [in_fresh_process(world, subjects, workers) for _ in range(END_TO_END_REPEATS)]
+    return median_run(runs, "seconds_with_imports")
 
 
 def peak_memory(world: Path, counts: list[int]) -> list[dict]:

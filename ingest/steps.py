@@ -262,8 +262,8 @@ class MeshSilhouette:
 
     * ``"depth-buffer"`` (the compiled kernel): every face is drawn over the pixel centres inside its
       projection, nearest depth wins. For faces in front of a pinhole camera this is the ray rule exactly,
-      and costs 0.4 ms at 128² and 4.5 ms at 1024² for the 7,776-face template (rays: 2.2 and 32 ms). It
-      needs every vertex in front of the camera.
+      and 3-4x faster than the rays below (``mask_methods`` in ``bench/results/ingest.json``). It needs
+      every vertex in front of the camera.
     * ``"rays"`` (trimesh, with the embree backend when installed), with far fewer rays than pixels: only
       pixels inside the convex hull of the projected head (non-neck) vertices can be in; the answer changes
       from one pixel to the next only across the projection of a *contour edge* (a silhouette edge, whose
@@ -316,14 +316,12 @@ class MeshSilhouette:
                 )
                 return flags.view(bool)
             if self.method == "depth-buffer":
-                raise ValueError(
-                    "the depth-buffer silhouette "
-                    + (
-                        "needs every vertex in front of the camera"
-                        if kernel is not None
-                        else "kernel is not built"
-                    )
+                why = (
+                    "kernel could not be built"
+                    if kernel is None
+                    else "needs every vertex in front of the camera"
                 )
+                raise ValueError(f"the depth-buffer silhouette {why}")
         return self._ray_mask(K, w2c, width, height)
 
     def _prepare_rays(self) -> None:

@@ -77,9 +77,8 @@ def load_extension(
                 )
             finally:
                 fcntl.flock(lock, fcntl.LOCK_UN)
-    except (
-        Exception
-    ) as error:  # no compiler, no ninja, read-only cache: fall back, but say why and what to do
+    # No compiler, no ninja, a read-only cache: fall back, but say why and what to do.
+    except Exception as error:
         message = str(error).strip()
         warnings.warn(
             f"relightanyone: could not build the C++ {what} kernel in {build_dir} ({type(error).__name__}: "
