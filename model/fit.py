@@ -34,6 +34,7 @@ from relightanyone.model.avatar import FittedAvatar, avatar_from_decoded
 from relightanyone.model.fit_views import FitViews, load_fit_views
 from relightanyone.model.gaussians import Gaussians, assemble_gaussians
 from relightanyone.model.losses import (
+    composite_over_background,
     masked_l1,
     masked_ssim,
     offset_l2,
@@ -47,8 +48,9 @@ from relightanyone.model.stage1_model import Stage1Model
 from relightanyone.model.stage2 import Stage2Model, texel_mesh_normals
 from relightanyone.render.lights import PointLights
 
-VIEW_STREAM = 10  # generator streams of the fit (views per step, locality codes)
+VIEW_STREAM = 10  # generator streams of the fit (views per step, locality codes, backgrounds)
 LOCALITY_STREAM = 11
+BACKGROUND_STREAM = 12
 MIN_INTENSITY = 1e-8  # log-parameterised intensities start here for rig lights calibrated at zero
 
 
@@ -294,8 +296,9 @@ class Fitter:
         """(rig light positions (L, 3), head centre (3,), the preset with the shading options)."""
         return self.model.rig.positions, self.stage2.head_centre, self.model.stage2_preset
 
-    def render(self, view_index: list[int]) -> tuple[torch.Tensor, torch.Tensor, Gaussians]:
-        """Relit render of the current fit in some input views: (images (v, 3, H, W), vertices, Gaussians)."""
+    def render(self, view_index: list[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, Gaussians]:
+        """Relit render of the current fit in some input views: (images (v, 3, H, W), alphas (v, 1, H, W),
+        vertices, Gaussians)."""
         from relightanyone.render.rasterize import rasterize
 
         vertices, gaussians, params, w2c, K = self.reflectance(view_index)
@@ -313,7 +316,7 @@ class Fitter:
         )
         height, width = self.views.images.shape[-2:]
         # One splat call: the geometry is shared by the views, the relit colours are per camera (v, N, 3).
-        image, _, _ = rasterize(
+        image, alpha, _ = rasterize(
             gaussians.means[0],
             gaussians.quats[0],
             gaussians.scales[0],
@@ -324,12 +327,27 @@ class Fitter:
             width,
             height,
         )
-        return image, vertices, gaussians
+        return image, alpha, vertices, gaussians
 
-    def data_terms(self, view_index: list[int]) -> tuple[dict[str, torch.Tensor], torch.Tensor, Gaussians]:
-        """Photometric and geometry terms (scalars) of some views, with the decoded mesh and Gaussians."""
-        render, vertices, gaussians = self.render(view_index)
+    def step_backgrounds(self, step: int, count: int, stream_offset: int = 0) -> torch.Tensor:
+        """(count, 3) random background colours of one step (stateless, as the views)."""
+        rng = iteration_generator(self.settings.seed, step, BACKGROUND_STREAM + stream_offset)
+        return torch.from_numpy(rng.random((count, 3)).astype(np.float32))
+
+    def data_terms(
+        self, view_index: list[int], background: torch.Tensor | None = None
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor, Gaussians]:
+        """Photometric and geometry terms (scalars) of some views, with the decoded mesh and Gaussians.
+
+        With ``background`` (v, 3), render and target are compared over it on the whole image (as in
+        training: the fit must keep the head opaque inside its mask and empty outside); without, inside
+        the mask only.
+        """
+        render, alpha, vertices, gaussians = self.render(view_index)
         target, mask = self.views.images[view_index], self.views.masks[view_index]
+        if background is not None:
+            render, target = composite_over_background(render, alpha, target, mask, background)
+            mask = torch.ones_like(mask)
         terms = {
             "l1": masked_l1(render, target, mask).mean(),
             "ssim": (1.0 - masked_ssim(render, target, mask)).mean(),
@@ -344,9 +362,9 @@ class Fitter:
             total = total + self.weights.geometry * terms["geometry"]
         return total
 
-    def inversion_loss(self, view_index: list[int]) -> tuple[torch.Tensor, dict[str, float]]:
+    def inversion_loss(self, view_index: list[int], step: int = 0) -> tuple[torch.Tensor, dict[str, float]]:
         """``10 L1 + 0.2 (1 − SSIM) + 0.4 vertex L2 + λ_id ‖z_id‖²`` and its logged terms."""
-        terms, _, _ = self.data_terms(view_index)
+        terms, _, _ = self.data_terms(view_index, self.step_backgrounds(step, len(view_index)))
         terms["identity"] = self.z_id.pow(2).sum()
         terms["lighting_prior"] = (self.log_intensities - self.log_intensities_start).pow(2).mean()
         total = (
@@ -360,7 +378,7 @@ class Fitter:
         self, view_index: list[int], step: int, locality_weight: float
     ) -> tuple[torch.Tensor, dict[str, float]]:
         """Data terms + scale bound + final λ_t ‖δt‖² + ``locality_weight`` × locality regulariser."""
-        terms, _, gaussians = self.data_terms(view_index)
+        terms, _, gaussians = self.data_terms(view_index, self.step_backgrounds(step, len(view_index), 1))
         terms["scale"] = scale_bound_loss(gaussians.scales_preclip).mean()
         terms["offset"] = offset_l2(gaussians.offsets).mean()
         total = (
@@ -392,7 +410,7 @@ class Fitter:
         self.log_intensities.requires_grad_(True)
         optimizer = torch.optim.Adam([self.z_id, self.log_intensities], lr=self.settings.inversion_lr)
         return self._optimize(
-            "inversion", optimizer, iterations, lambda step, views: self.inversion_loss(views)
+            "inversion", optimizer, iterations, lambda step, views: self.inversion_loss(views, step)
         )
 
     def finetune(

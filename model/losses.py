@@ -1,7 +1,8 @@
 """Stage-1 objective and image metrics.
 
 L = 10·L1 + 0.2·(1 − SSIM) + 0.4·vertex L2 + 0.01·scale bound + λ_t·‖δt‖², λ_t annealed 1 → 0.001.
-Image terms count masked pixels only. Vertex L2 is in mm² (RGCA's unit, for which its 0.4 weight was
+Image terms count masked pixels only; training composites render and target over a random background
+first (:func:`composite_over_background`), so the mask covers the whole crop. Vertex L2 is in mm² (RGCA's unit, for which its 0.4 weight was
 chosen); δt and scales are in texel spacings (see :mod:`relightanyone.model.gaussians`).
 """
 
@@ -53,6 +54,27 @@ def masked_ssim(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) 
     """
     _check_images(render, target, mask)
     return _per_sample_masked_mean(kornia_ssim(render * mask, target * mask, SSIM_WINDOW), mask)
+
+
+def composite_over_background(
+    render: torch.Tensor,
+    alpha: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor,
+    background: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Put the render and the masked target over one background colour per sample.
+
+    render, target (B, 3, H, W); alpha, mask (B, 1, H, W) in [0, 1]; background (B, 3).
+    Returns (render + (1 − alpha)·bg, target·mask + bg·(1 − mask)), both (B, 3, H, W).
+
+    Compared over the whole crop, these make coverage part of the image: the head must be opaque
+    inside its mask and empty outside. A loss over masked pixels alone lets a fog of large, faint
+    Gaussians with brightened colours reproduce a flat-lit image; that fog then blurs every relit
+    render, because each pixel mixes the shading of surface points centimetres apart.
+    """
+    bg = background.to(render.dtype)[:, :, None, None]
+    return render + (1.0 - alpha) * bg, target * mask + bg * (1.0 - mask)
 
 
 def masked_psnr(

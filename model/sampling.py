@@ -18,11 +18,25 @@ import numpy as np
 
 BATCH_STREAM = 0
 CROP_STREAM = 1
+BACKGROUND_STREAM = 3  # 2 is the stage-2 trainer's pattern stream
 
 
 def iteration_generator(seed: int, iteration: int, stream: int, index: int = 0) -> np.random.Generator:
     """The generator of one use (``stream``) at one iteration, for item ``index`` (e.g. a global sample)."""
     return np.random.default_rng([int(seed), int(iteration), int(stream), int(index)])
+
+
+def background_colours(seed: int, iteration: int, first_sample: int, count: int) -> np.ndarray:
+    """(count, 3) float32 uniform random RGB backgrounds of global samples ``first_sample ..`` at ``iteration``.
+
+    Drawn per sample from its own generator, so a resumed or multi-process run draws the same colours.
+    """
+    return np.stack(
+        [
+            iteration_generator(seed, iteration, BACKGROUND_STREAM, first_sample + i).random(3)
+            for i in range(count)
+        ]
+    ).astype(np.float32)
 
 
 def balanced_batch(

@@ -34,10 +34,10 @@ from relightanyone.model.checkpoint import (
 from relightanyone.model.data import Stage1Data
 from relightanyone.model.evaluate import evaluate_held_out
 from relightanyone.model.gaussians import TexelBinding
-from relightanyone.model.losses import offset_weight, stage1_loss
+from relightanyone.model.losses import composite_over_background, offset_weight, stage1_loss
 from relightanyone.model.memory import estimate_training_memory, format_memory
 from relightanyone.model.presets import Stage1Preset
-from relightanyone.model.sampling import balanced_batch
+from relightanyone.model.sampling import background_colours, balanced_batch
 from relightanyone.model.stage1_model import Stage1Model
 from relightanyone.model.views import comparison_strip, render_gaussians, to_display
 
@@ -225,13 +225,19 @@ def train_stage1(config: Stage1Config) -> dict:
             for k, v in data.load_batch(views, preset.crop_size, config.seed, iteration, first_sample).items()
         }
         vertices, gaussians = model(batch["subject_index"], batch["dataset_index"], use_lighting=use_lighting)
-        render, _ = render_gaussians(gaussians, batch["K"], batch["w2c"], preset.crop_size, preset.crop_size)
+        render, alpha = render_gaussians(
+            gaussians, batch["K"], batch["w2c"], preset.crop_size, preset.crop_size
+        )
         if config.warmup:
             render = model.dataset_colour(render, batch["dataset_index"])
+        background = background_colours(config.seed, iteration, first_sample, len(views))
+        render_bg, target_bg = composite_over_background(
+            render, alpha, batch["image"], batch["mask"], torch.from_numpy(background).to(group.device)
+        )
         loss, terms = stage1_loss(
-            render,
-            batch["image"],
-            batch["mask"],
+            render_bg,
+            target_bg,
+            torch.ones_like(batch["mask"]),
             vertices,
             batch["tracked"],
             gaussians,

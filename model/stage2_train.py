@@ -41,6 +41,7 @@ from relightanyone.model.checkpoint import (
 )
 from relightanyone.model.gaussians import TexelBinding
 from relightanyone.model.losses import (
+    composite_over_background,
     masked_l1,
     masked_ssim,
     offset_l2,
@@ -64,6 +65,7 @@ from relightanyone.model.relight import (
 )
 from relightanyone.model.sampling import (
     CROP_STREAM,
+    background_colours,
     choose_crop,
     crop_array,
     crop_intrinsics,
@@ -402,15 +404,22 @@ class Stage2Trainer:
             self.preset.inverse_square,
         )
         crop = batch["image"].shape[-1]
-        render, _ = render_gaussians(
+        render, alpha = render_gaussians(
             dataclasses.replace(gaussians, colours=relit.colour), batch["K"], batch["w2c"], crop, crop
         )
+        compared, image, mask = render, batch["image"], batch["mask"]
+        if self.config.single_stage:  # its geometry trains: coverage counts, as in stage 1
+            background = background_colours(self.config.seed, iteration, 0, render.shape[0])
+            compared, image = composite_over_background(
+                render, alpha, image, mask, torch.from_numpy(background)
+            )
+            mask = torch.ones_like(mask)
         normal_lambda = annealed_weight(
             iteration, weights.normal_start, weights.normal_end, self.preset.normal_anneal_iterations
         )
         terms = {
-            "l1": masked_l1(render, batch["image"], batch["mask"]),
-            "ssim": 1.0 - masked_ssim(render, batch["image"], batch["mask"]),
+            "l1": masked_l1(compared, image, mask),
+            "ssim": 1.0 - masked_ssim(compared, image, mask),
             "negative_diffuse": negative_diffuse_loss(relit.diffuse),
             "monochrome": monochrome_transfer_loss(params.transfer),
             "normal": normal_residual_loss(params.normal_residual),

@@ -10,6 +10,7 @@ import torch
 from relightanyone.model.colour_align import colour_cast_error, correction_from_render_matrix
 from relightanyone.model.gaussians import MAX_SCALE, MIN_SCALE
 from relightanyone.model.losses import (
+    composite_over_background,
     masked_l1,
     masked_psnr,
     masked_ssim,
@@ -21,6 +22,7 @@ from relightanyone.model.losses import (
 from relightanyone.model.memory import estimate_training_memory
 from relightanyone.model.presets import LossWeights, get_preset
 from relightanyone.model.sampling import (
+    background_colours,
     balanced_batch,
     choose_crop,
     crop_array,
@@ -46,6 +48,39 @@ def test_image_losses_only_count_masked_pixels():
     assert ssim[1] == pytest.approx(1.0, abs=1e-4) and ssim[0] < 0.99
     with pytest.raises(ValueError, match="mask must be"):
         masked_l1(render, target, mask[:, :, :10])
+
+
+def test_background_compositing_makes_coverage_count():
+    """Over a background, a faint head no longer matches an opaque one, and spill outside the mask costs."""
+    target = torch.full((1, 3, 8, 8), 0.4)
+    mask = torch.zeros(1, 1, 8, 8)
+    mask[..., 2:6, 2:6] = 1
+    background = torch.tensor([[0.9, 0.1, 0.5]])
+    # Opaque and exactly covering the mask: identical over any background.
+    render_bg, target_bg = composite_over_background(target * mask, mask, target, mask, background)
+    assert torch.allclose(render_bg, target_bg)
+    assert torch.allclose(target_bg[0, :, 0, 0], background[0])  # outside: the background
+    assert torch.allclose(target_bg[0, :, 3, 3], torch.full((3,), 0.4))  # inside: the image
+    # A fog at a quarter coverage with 4x the colour matches inside the mask on black ...
+    fog_alpha = 0.25 * mask
+    fog = 1.6 * fog_alpha.expand(1, 3, 8, 8)
+    assert torch.allclose(masked_l1(fog, target, mask), torch.zeros(1))
+    # ... but not over a background: three quarters of it shows through.
+    fog_bg, target_bg = composite_over_background(fog, fog_alpha, target, mask, background)
+    assert torch.allclose(masked_l1(fog_bg, target_bg, mask), 0.75 * background.mean())
+    # Spill: an opaque render wider than the mask.
+    spill_bg, target_bg = composite_over_background(target, torch.ones_like(mask), target, mask, background)
+    assert torch.allclose(masked_l1(spill_bg, target_bg, mask), torch.zeros(1))
+    assert torch.allclose(masked_l1(spill_bg, target_bg, 1 - mask), (background - 0.4).abs().mean())
+
+
+def test_background_colours_are_per_sample_and_reproducible():
+    first = background_colours(0, 7, 0, 4)
+    assert first.shape == (4, 3) and first.dtype == np.float32
+    assert ((first >= 0) & (first < 1)).all()
+    assert np.array_equal(first, background_colours(0, 7, 0, 4))  # a resumed run draws the same
+    assert np.array_equal(first[2:], background_colours(0, 7, 2, 2))  # process 2 of a split batch too
+    assert not np.array_equal(first, background_colours(0, 8, 0, 4))
 
 
 def test_psnr_matches_the_definition():
