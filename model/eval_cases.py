@@ -159,7 +159,8 @@ class AnswerFrame:
     """A test subject's first full-on frame, tied to the world's answers.
 
     rows: (camera, K_row, width, height) of the chosen cameras; world_to_norm: (4, 4) A of
-    :func:`world_to_normalized`; native: the answer cameras.
+    :func:`world_to_normalized`; native: the answer cameras; row_masks: camera -> (H, W) mask of the
+    row (the dataset's definition of the subject: the tracked head, cut below the neck line).
     """
 
     world_dataset: str
@@ -168,6 +169,7 @@ class AnswerFrame:
     rows: list[tuple[str, np.ndarray, int, int]]
     world_to_norm: np.ndarray
     native: dict[str, NativeCamera]
+    row_masks: dict[str, np.ndarray] = field(default_factory=dict)
 
     def geometry(self, camera: str) -> tuple[np.ndarray, np.ndarray, int, int]:
         """(K, w2c, width, height) of the answer's view in the normalized space and the row's crop."""
@@ -180,6 +182,7 @@ def answer_frame(
     answers: WorldAnswers, world_dataset: str, dataset_dir: Path, subject: str, cameras: list[str] | None
 ) -> AnswerFrame:
     """Tie a test subject's first full-on frame to the answers (cameras default to all of them)."""
+    from relightanyone.format.codecs import decode_mask
     from relightanyone.format.reader import NormalizedDataset
 
     dataset = NormalizedDataset(dataset_dir)
@@ -203,6 +206,7 @@ def answer_frame(
         [(r.camera, np.asarray(r.K), int(r.width), int(r.height)) for r in chosen],
         transform,
         native,
+        {r.camera: decode_mask(r.mask) for r in chosen},
     )
 
 
@@ -213,7 +217,12 @@ def _warp(frame: AnswerFrame, camera: str, image: np.ndarray) -> np.ndarray:
 
 
 def answer_masks(answers: WorldAnswers, frame: AnswerFrame) -> dict[str, np.ndarray]:
-    """Camera -> (H, W) mask of the subject: pixels lit by any answer light, warped into the crop."""
+    """Camera -> (H, W) mask of the subject: pixels lit by any answer light, warped into the crop, and
+    inside the row's own mask.
+
+    The row mask limits the comparison to what the datasets define as the subject (the head above the
+    neck line), as Table 1's rows do: the model is trained to leave everything else empty.
+    """
     import cv2
 
     lights = len(answers.answer_lights().positions)
@@ -223,7 +232,9 @@ def answer_masks(answers: WorldAnswers, frame: AnswerFrame) -> dict[str, np.ndar
         covered = (total.sum(axis=-1) > ANSWER_MASK_THRESHOLD).astype(np.float32)
         warped = _warp(frame, camera, covered[..., None])[..., 0]
         # Only pixels fully inside the subject: the warp blends edge pixels with the black background.
-        masks[camera] = cv2.erode((warped > 0.999).astype(np.float32), np.ones((3, 3), np.uint8))
+        inside = cv2.erode((warped > 0.999).astype(np.float32), np.ones((3, 3), np.uint8))
+        row_mask = frame.row_masks.get(camera)
+        masks[camera] = inside if row_mask is None else inside * (row_mask > 0.5)
     return masks
 
 

@@ -179,6 +179,27 @@ def test_answers_are_warped_onto_the_analytic_truth(evaluated):
     assert read_answer_image(answers.olat_path("d2", "f01", "cam00", 0)).shape == (SIZE, SIZE, 3)
 
 
+def test_answer_masks_stay_inside_the_row_masks(evaluated):
+    """The tables compare only what the dataset calls the subject: a row mask cut at some line limits
+    the answer mask to it."""
+    from relightanyone.model.eval_cases import answer_frame, answer_masks
+
+    answers = WorldAnswers(evaluated["world"])
+    frame = answer_frame(answers, "d2", evaluated["paths"]["flat"], "f01", ["cam01", "cam02"])
+    assert set(frame.row_masks) == {"cam01", "cam02"}
+    full = answer_masks(answers, frame)
+    cut = {camera: mask.copy() for camera, mask in frame.row_masks.items()}
+    for mask in cut.values():
+        mask[mask.shape[0] // 2 :] = 0  # a neck line through the middle
+    frame.row_masks = cut
+    limited = answer_masks(answers, frame)
+    for camera, mask in cut.items():
+        half = mask.shape[0] // 2
+        assert full[camera][:half].sum() > 0 and full[camera][half:].sum() > 0  # the cut removes something
+        np.testing.assert_array_equal(limited[camera], full[camera] * (mask > 0.5))
+        assert limited[camera][half:].sum() == 0
+
+
 def test_tables_and_report(evaluated):
     results, out = evaluated["results"], evaluated["out"]
     table1 = results["table1"]["subjects"]["d1/s02"]
