@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-# Largest supersampling factor per axis used to area-average when downscaling (memory: out² · k² pixels).
+# Largest ratio of the remapped crop's side to the output's when downscaling (memory: out² · k² pixels).
 MAX_SUPERSAMPLING = 16
 
 
@@ -164,6 +164,18 @@ def _resample(image: np.ndarray, K: np.ndarray, dist: np.ndarray, K_out: np.ndar
     )
 
 
+def _shifted_crop(image: np.ndarray, box: Any) -> np.ndarray:
+    """The pixels of the square ``box`` ``(x0, y0, x1, y1)`` of ``image (H, W[, C])``, zero where the box
+    leaves the image: what a pinhole remap by the integer shift ``(x0, y0)`` gives, without the map."""
+    x0, y0, x1, y1 = (int(v) for v in box)
+    height, width = image.shape[:2]
+    out = np.zeros((y1 - y0, x1 - x0, *image.shape[2:]), dtype=image.dtype)
+    sx0, sy0, sx1, sy1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    if sx1 > sx0 and sy1 > sy0:
+        out[sy0 - y0 : sy1 - y0, sx0 - x0 : sx1 - x0] = image[sy0:sy1, sx0:sx1]
+    return out
+
+
 def undistort_crop_resize(
     image: np.ndarray, K: Any, dist: Any, box: Any, out_size: int
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -173,10 +185,13 @@ def undistort_crop_resize(
     ``box`` and scaled to ``out_size × out_size``; its intrinsics are :func:`crop_resize_intrinsics`.
     Pixels outside the source are 0.
 
-    Anti-aliasing: when the output is ``k``× coarser than the source (``k = ceil(side / out_size)`` > 1,
-    capped at :data:`MAX_SUPERSAMPLING`), the remap renders a ``k·out_size`` image (bilinear, spacing ≤ 1
-    source pixel) and ``cv2.INTER_AREA`` averages each ``k×k`` block: a box filter over the output pixel's
-    footprint. The supersampled camera is exactly ``K_new`` resized by ``k``, so geometry is unchanged.
+    Anti-aliasing: when the output is coarser than the source (``side > out_size``), the remap renders the
+    crop at the source's own resolution (``side²``, capped at ``MAX_SUPERSAMPLING · out_size``; bilinear,
+    one sample per source pixel) and ``cv2.INTER_AREA`` resizes it to ``out_size²``: an exact box filter
+    over each output pixel's footprint. Resizing follows the same half-pixel rule as
+    :func:`crop_resize_intrinsics`, so geometry is unchanged. A camera without distortion needs no remap
+    at all: its undistorted crop is the source's pixels shifted by the box, so they are sliced (zero
+    outside the image), the same values a remap would give, without building a map.
 
     Args:
         image: ``(H, W)`` or ``(H, W, C)``; float32/float64 (linear colour) or uint8/uint16 (alpha maps).
@@ -198,13 +213,17 @@ def undistort_crop_resize(
     K, dist = _as_K(K), _as_dist(dist)
     K_new = crop_resize_intrinsics(K, box, out_size)
     side = int(box[2]) - int(box[0])
-    factor = min(max(int(math.ceil(side / out_size - 1e-9)), 1), MAX_SUPERSAMPLING)
     # Integer images are resampled in float32 and rounded once, after the averaging.
     work = img if np.issubdtype(img.dtype, np.floating) else img.astype(np.float32)
-    K_ss = crop_resize_intrinsics(K, box, out_size * factor)
-    out = _resample(work, K, dist, K_ss, out_size * factor)
-    if factor > 1:
+    if side > out_size:
+        fine = min(side, out_size * MAX_SUPERSAMPLING)
+        if fine == side and not dist.any():
+            out = _shifted_crop(work, box)
+        else:
+            out = _resample(work, K, dist, crop_resize_intrinsics(K, box, fine), fine)
         out = cv2.resize(out, (out_size, out_size), interpolation=cv2.INTER_AREA)
+    else:
+        out = _resample(work, K, dist, K_new, out_size)
     if out.ndim == 2 and img.ndim == 3:
         out = out[:, :, None]  # OpenCV drops a single channel axis
     if np.issubdtype(img.dtype, np.integer):

@@ -7,8 +7,8 @@ normalized row instead: an undistorted crop/resize of the same camera with its o
 the normalized canonical space (which may differ from the world's by the ingest's alignment error).
 
 * Pixels: the row image is a 2-D function of the native image (undistort, crop, resize), so the answer is
-  warped with ``cv2.initUndistortRectifyMap(K_native, dist, I, K_row)``, supersampled and area-averaged
-  when the row is smaller than the native image. No 3-D quantity enters the warp.
+  warped with ``cv2.initUndistortRectifyMap(K_native, dist, I, K_row)`` at the native resolution and
+  area-averaged when the row is smaller than the native image, the filter ingest uses. No 3-D quantity enters the warp.
 * Lights: answer lights are given in the world's canonical space. :func:`world_to_normalized` is the rigid
   map between the two canonical spaces, estimated from the cameras both describe (for one subject frame).
 * Datasets: the world folder of a normalized dataset (``d1`` .. ``d4``) is the one whose truth cameras are
@@ -18,7 +18,6 @@ the normalized canonical space (which may differ from the world's by the ingest'
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -168,31 +167,36 @@ def warp_native_to_row(
 ) -> np.ndarray:
     """Resample a native image (H, W, C) into a normalized row's pinhole crop -> (height, width, C).
 
-    Each row pixel looks up the native pixel its ray hits (distortion applied), at ``s``× the row's
-    resolution when the row is coarser than the native image, then the ``s × s`` blocks are averaged,
-    like the area filter ingest used to resize. Pixels outside the native image are 0.
+    The same filter as ingest's :func:`~relightanyone.ingest.steps.undistort_crop_resize`: when the row
+    is coarser than the native image (``s = fx_native / fx_row > 1``), each pixel of the crop at the
+    native resolution (``round(s · width) × round(s · height)``) looks up the native pixel its ray hits
+    (distortion applied, bilinear), then ``cv2.INTER_AREA`` averages every row pixel's footprint; else
+    the row's own pixels look up the native image directly. Pixels outside the native image are 0.
     """
     import cv2
 
     image = np.asarray(image, dtype=np.float32)
     scale = float(K_native[0, 0]) / float(K_row[0, 0])
-    factor = max(1, math.ceil(scale - 1e-6))
+    fine_width, fine_height = width, height
     fine_K = np.array(K_row, dtype=np.float64, copy=True)
-    fine_K[:2, :2] *= factor
-    fine_K[:2, 2] = (fine_K[:2, 2] + 0.5) * factor - 0.5
+    if scale > 1.0 + 1e-6:
+        fine_width, fine_height = round(width * scale), round(height * scale)
+        for axis, ratio in ((0, fine_width / width), (1, fine_height / height)):
+            fine_K[axis, axis] *= ratio
+            fine_K[axis, 2] = (fine_K[axis, 2] + 0.5) * ratio - 0.5
     map_x, map_y = cv2.initUndistortRectifyMap(
         np.asarray(K_native, dtype=np.float64),
         np.asarray(dist, dtype=np.float64),
         np.eye(3),
         fine_K,
-        (width * factor, height * factor),
+        (fine_width, fine_height),
         cv2.CV_32FC1,
     )
     warped = cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    if (fine_width, fine_height) != (width, height):
+        warped = cv2.resize(warped, (width, height), interpolation=cv2.INTER_AREA)
     if warped.ndim == 2:
         warped = warped[..., None]
-    if factor > 1:
-        warped = warped.reshape(height, factor, width, factor, -1).mean(axis=(1, 3))
     return warped.astype(np.float32)
 
 

@@ -270,6 +270,9 @@ def from_nersemble_params(
 
 
 # ---------------------------------------------------------------------------------------------- VHAP / NeRF
+# The per-frame fields that define a camera in a transforms.json (absent ones fall back to the top level).
+_CAMERA_FIELDS = ("transform_matrix", "w", "h", "fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4", "p1", "p2")
+
 def from_transforms_json(
     source: str | Path | Mapping[str, Any], per: str = "frame", vhap_downsample: int | None = None
 ) -> Cameras:
@@ -290,8 +293,16 @@ def from_transforms_json(
         raise CalibrationError(name, "frames", "expected a non-empty list")
     shift = 0.0 if vhap_downsample is None else -0.5 * (1.0 - 1.0 / vhap_downsample)
     Ks, w2cs, dists, sizes, names, seen = [], [], [], [], [], {}
+    # per="camera": a VHAP export repeats every camera once per timestep; an entry whose raw fields equal
+    # its camera's first entry is skipped before parsing (thousands of entries per subject).
+    raw_seen: dict[str, tuple] = {}
     for i, frame in enumerate(frames):
         field = f"frames[{i}]"
+        if per == "camera" and isinstance(frame, Mapping):
+            key = str(frame.get("camera_id", frame.get("camera_index", frame.get("file_path", i))))
+            raw = tuple(frame.get(k) for k in _CAMERA_FIELDS)
+            if raw_seen.get(key) == raw:
+                continue
 
         def value(key: str, default: float | None = None, frame: Any = frame, field: str = field) -> float:
             raw = frame.get(key, data.get(key, default)) if isinstance(frame, Mapping) else None
@@ -321,6 +332,7 @@ def from_transforms_json(
                     )
                 continue
             seen[key] = len(Ks)
+            raw_seen[key] = tuple(frame.get(k) for k in _CAMERA_FIELDS)
         names.append(key if per == "camera" else str(frame.get("file_path", i)))
         Ks.append(K)
         w2cs.append(w2c)

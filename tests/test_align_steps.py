@@ -321,3 +321,22 @@ def test_silhouette_without_a_compiler_warns_and_casts_rays(tmp_path, monkeypatc
         assert np.array_equal(fallback, rays) and rays.any()
     finally:
         load_silhouette_kernel.cache_clear()
+
+
+def test_undistorted_crop_is_sliced_with_the_values_a_remap_gives():
+    """Without distortion the crop is sliced instead of remapped; the pixels must be the remap's."""
+    from relightanyone.ingest.steps import _resample, crop_resize_intrinsics
+
+    rng = np.random.default_rng(3)
+    image = rng.random((H_SRC, W_SRC, 3), dtype=np.float32)
+    for box in [
+        (150, 90, 350, 290),
+        (-40, -30, 170, 180),
+        (W_SRC - 100, H_SRC - 120, W_SRC + 60, H_SRC + 40),
+    ]:
+        side = box[2] - box[0]
+        out, K_new = undistort_crop_resize(image, K_SRC, None, box, 64)
+        remapped = _resample(image, K_SRC, np.zeros(0), crop_resize_intrinsics(K_SRC, box, side), side)
+        expected = cv2.resize(remapped, (64, 64), interpolation=cv2.INTER_AREA)
+        assert np.abs(out - expected).max() < 1e-5
+        assert np.allclose(K_new, crop_resize_intrinsics(K_SRC, box, 64))

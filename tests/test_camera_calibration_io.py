@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 from pathlib import Path
 
@@ -158,6 +159,18 @@ def test_transforms_json_round_trips_opengl_c2w_and_flipped_cy() -> None:
     torch.testing.assert_close(down.K, native.resize(0.25).K)
     points = torch.tensor(np.random.default_rng(0).normal(size=(30, 3)) * 0.1)
     torch.testing.assert_close(down.project(points)[0], native.resize(0.25).project(points)[0])
+
+
+def test_transforms_json_refuses_a_camera_that_changes_between_timesteps() -> None:
+    native = Cameras.cat(
+        [known_camera(), known_camera()[0].transform_world(torch.eye(4, dtype=torch.float64))]
+    ).with_names(["a", "b"])
+    data = vhap_transforms(native, 480, 1)
+    moved = copy.deepcopy(data["frames"][2])  # camera "a" at its second timestep
+    moved["transform_matrix"][0][3] += 0.01
+    data["frames"][2] = moved
+    with pytest.raises(CalibrationError, match=r"frames\[2\].*camera a has different parameters"):
+        from_transforms_json(data, per="camera")
 
 
 # ---------------------------------------------------------------------------------------------- COLMAP

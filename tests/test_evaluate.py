@@ -293,3 +293,17 @@ def test_full_on_equals_sum_of_olat_in_a_consistent_dataset(evaluated):
     ratio = olat_sum_over_full_on(evaluated["paths"]["data"], "s00", ["cam00", "cam02"])
     assert ratio == pytest.approx(1.0, abs=1e-3)
     assert olat_sum_over_full_on(evaluated["paths"]["data"], "s02", ["cam00"]) is None  # no OLAT rows
+
+
+def test_warp_matches_the_ingest_filter_at_a_fractional_scale():
+    """A row 1.5× coarser than the native image: the warp is ingest's undistorted crop + area resize."""
+    from relightanyone.ingest.steps import undistort_crop_resize
+
+    rng = np.random.default_rng(2)
+    native = cv2.GaussianBlur(rng.random((120, 150, 3)).astype(np.float32), (5, 5), 1.0)
+    K_native = np.array([[140.0, 0, 74.5], [0, 140.0, 59.5], [0, 0, 1]])
+    dist = np.array([-0.1, 0.02, 0.001, -0.001, 0.0])
+    box = (20, 10, 116, 106)  # 96 px to 64 px
+    ingested, K_row = undistort_crop_resize(native, K_native, dist, box, 64)
+    warped = warp_native_to_row(native, K_native, dist, K_row, 64, 64)
+    np.testing.assert_allclose(warped, ingested, atol=1e-5)

@@ -43,6 +43,7 @@ import json
 import os
 import re
 import shutil
+import struct
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -142,10 +143,23 @@ def _check_task_name(task: str) -> str:
     return task
 
 
+def _single_binary(value: bytes) -> pa.Array:
+    """A one-element ``binary`` array over ``value`` without a copy (``pa.array`` appends the bytes
+    through a builder: about 0.8 ms for a 128² float16 image, more than compressing it)."""
+    offsets = pa.py_buffer(struct.pack("<ii", 0, len(value)))  # int32 offsets [0, len]
+    return pa.Array.from_buffers(pa.binary(), 1, [None, offsets, pa.py_buffer(value)])
+
+
 def _single_row_batch(schema: pa.Schema, values: dict) -> pa.RecordBatch:
     # Column by column: the same batch as ``from_pylist``, several times faster for one row.
     return pa.RecordBatch.from_arrays(
-        [pa.array([values[f.name]], type=f.type) for f in schema], schema=schema
+        [
+            _single_binary(values[f.name])
+            if f.type == pa.binary() and isinstance(values[f.name], bytes)
+            else pa.array([values[f.name]], type=f.type)
+            for f in schema
+        ],
+        schema=schema,
     )
 
 
