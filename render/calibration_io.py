@@ -271,7 +271,22 @@ def from_nersemble_params(
 
 # ---------------------------------------------------------------------------------------------- VHAP / NeRF
 # The per-frame fields that define a camera in a transforms.json (absent ones fall back to the top level).
-_CAMERA_FIELDS = ("transform_matrix", "w", "h", "fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4", "p1", "p2")
+_CAMERA_FIELDS = (
+    "transform_matrix",
+    "w",
+    "h",
+    "fl_x",
+    "fl_y",
+    "cx",
+    "cy",
+    "k1",
+    "k2",
+    "k3",
+    "k4",
+    "p1",
+    "p2",
+)
+
 
 def from_transforms_json(
     source: str | Path | Mapping[str, Any], per: str = "frame", vhap_downsample: int | None = None
