@@ -12,6 +12,9 @@ Measures, in one run on the same images:
 * ``cold``: the same runs in a fresh process, imports and pool start included (what one CLI call pays),
   the median of ``END_TO_END_REPEATS``;
 * ``peak_memory``: peak RSS of a fresh process ingesting 2, 4, 8 ... subjects (it should stay flat);
+* ``parallel_ceiling``: what the machine itself gives two processes: the bare loop in one fresh process,
+  then in two at once; the ratio of their summed images per second to the single one (the median of
+  three such pairs) is about the most two workers could reach over one;
 * ``mask_methods``: milliseconds per mesh-silhouette mask, compiled depth buffer vs ray casting, at the
   crop sizes of the presets (the ingest uses the depth buffer);
 * ``full_size``: bare loop and warm 1-worker ingest of a smaller world whose Ava-256 images have the real
@@ -150,16 +153,18 @@ def bare_loop(plan, size: int) -> dict:
     """Decode + resize + encode every view of ``plan`` in this process; images per second.
 
     Encode is what the format stores: the image in the default encoding and the mask PNG, under the
-    shards' zstd (for the default ``raw-f16`` the compression is the encoding's only real work).
+    shards' zstd (for the default ``raw-f16`` the compression is the encoding's only real work). Threads
+    are set as an ingest task sets them (one for OpenCV and for the decoders), so both decode alike.
     """
     import cv2
     import pyarrow as pa
     from relightanyone.ingest.decode import TaskDecoder
+    from relightanyone.ingest.subject_task import configure_task_threads
 
     from relightanyone.format.arrow_io import ZSTD_LEVEL
     from relightanyone.format.codecs import encode_image, encode_mask
 
-    cv2.setNumThreads(1)
+    configure_task_threads()
     codec = pa.Codec("zstd", compression_level=ZSTD_LEVEL)
     views = [v for s in plan.subjects for v in s.views]
     with TaskDecoder(plan.source_root) as decoder:  # warm the imports and caches on one view
@@ -181,6 +186,53 @@ def bare_loop(plan, size: int) -> dict:
         "seconds": round(seconds, 3),
         "images_per_s": round(len(views) * BARE_PASSES / seconds, 2),
     }
+
+
+def bare_child(world: Path, start_at: float) -> None:
+    """Run in a fresh process: wait until ``start_at`` (a ``time.time()``), run the bare loop, print it."""
+    plan = make_plan(world)
+    time.sleep(max(0.0, start_at - time.time()))
+    print(json.dumps(bare_loop(plan, _crop_size())))
+
+
+def _crop_size() -> int:
+    from relightanyone.ingest.runner import PRESET_SIZES
+
+    return PRESET_SIZES[PRESET]
+
+
+def parallel_ceiling(world: Path, processes: int = 2, repeats: int = END_TO_END_REPEATS) -> dict:
+    """Images per second of the bare loop in one fresh process, then in ``processes`` at once (started
+    together once their imports are done), and the ratio of the latter's sum to the former; the median
+    ratio of ``repeats`` such pairs, since single runs on a shared machine spread widely."""
+
+    def run(count: int) -> list[dict]:
+        start_at = time.time() + 10.0  # imports and planning take a few seconds per process
+        children = [
+            subprocess.Popen(
+                [sys.executable, __file__, "--world", str(world), "--bare-child", str(start_at)],
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+            for _ in range(count)
+        ]
+        outputs = [child.communicate()[0] for child in children]
+        if any(child.returncode for child in children):
+            raise RuntimeError("a bare-loop child process failed")
+        return [json.loads(out.strip().splitlines()[-1]) for out in outputs]
+
+    pairs = []
+    for _ in range(repeats):
+        alone = run(1)[0]["images_per_s"]
+        together = [r["images_per_s"] for r in run(processes)]
+        pairs.append(
+            {
+                "one_process_images_per_s": alone,
+                "each_process_images_per_s": together,
+                "sum_over_one": round(sum(together) / alone, 3),
+            }
+        )
+    return {"processes": processes, **median_run(pairs, "sum_over_one")}
 
 
 def end_to_end(plan, world: Path, workers: int, preset: str = PRESET) -> dict:
@@ -282,9 +334,13 @@ def main() -> None:
     parser.add_argument("--full-size-world", type=Path, default=FULL_SIZE_WORLD)
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "ingest.json")
     parser.add_argument("--child", type=int, nargs=2, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--bare-child", type=float, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child is not None:
         child_run(args.world, *args.child)
+        return
+    if args.bare_child is not None:
+        bare_child(args.world, args.bare_child)
         return
     from relightanyone.ingest.runner import PRESET_SIZES
 
@@ -302,6 +358,8 @@ def main() -> None:
     cold = [cold_run(args.world, subjects, workers) for workers in (1, 2)]
     for run in cold:
         print(f"cold, {run['workers']} worker(s): {run['seconds_with_imports']} s with imports", flush=True)
+    ceiling = parallel_ceiling(args.world)
+    print(f"bare loop in 2 processes at once: {ceiling['sum_over_one']}× one", flush=True)
     counts = sorted({c for c in (2, 4, 8, 16) if c <= subjects} | {subjects})
     memory = peak_memory(args.world, counts)
     masks = mask_methods(args.world)
@@ -324,10 +382,12 @@ def main() -> None:
             "goal_end_to_end_over_bare_loop": round(1 / 1.3, 3),
             "two_workers_over_one": round(two["images_per_s"] / one["images_per_s"], 3),
             "goal_two_workers_over_one": 1.7,
+            "bare_loop_two_processes_over_one": ceiling["sum_over_one"],
             "cold_two_workers_over_one": round(
                 cold[0]["seconds_with_imports"] / cold[1]["seconds_with_imports"], 3
             ),
         },
+        "parallel_ceiling": ceiling,
         "peak_memory": memory,
         "mask_methods": masks,
         "full_size": large,

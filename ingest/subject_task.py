@@ -122,11 +122,14 @@ def normalize_view(
     return out, mask, K_new, w2c, box
 
 
-def _configure_threads() -> None:
+def configure_task_threads() -> None:
     """One thread per task: parallelism comes from the executor, and results stay deterministic."""
     import cv2
 
+    from .decode import set_decoder_threads
+
     cv2.setNumThreads(1)
+    set_decoder_threads(1)
     try:
         import torch
 
@@ -142,7 +145,7 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
 
     from .decode import DecodeError, TaskDecoder, apply_colour_calibration
 
-    _configure_threads()
+    configure_task_threads()
     plan = task.plan
     result = TaskResult(task.task, plan.subject, len(plan.views), 0, 0, 0)
     template = load_template(

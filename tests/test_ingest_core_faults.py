@@ -241,3 +241,43 @@ def test_local_pool_gives_the_same_bytes_as_one_process(capture, tmp_path):
     one = ingest(capture, tmp_path / "one", workers=1)
     two = ingest(capture, tmp_path / "two", workers=2)
     assert dataset_bytes(one.path) == dataset_bytes(two.path)
+
+
+def test_single_threaded_decoders_give_the_same_pixels(tmp_path):
+    """Tasks decode AVIF and video with one thread; the pixels must not depend on the thread count."""
+    import av
+    from PIL import AvifImagePlugin, Image
+    from relightanyone.ingest.decode import set_decoder_threads
+
+    rng = np.random.default_rng(4)
+    frames = [(rng.random((48, 64, 3)) * 255).astype(np.uint8) for _ in range(3)]
+    Image.fromarray(frames[0]).save(tmp_path / "view.avif", quality=90)
+    with av.open(str(tmp_path / "cam.mp4"), "w", format="mp4") as container:
+        stream = container.add_stream("libx264", rate=25, options={"crf": "18"})
+        stream.width, stream.height, stream.pix_fmt = 64, 48, "yuv420p"
+        for frame in frames:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    refs = [ImageRef("view.avif", "avif-srgb")] + [
+        ImageRef("cam.mp4", "mp4-frame", frame_index=i) for i in range(3)
+    ]
+
+    def decode_all() -> list[np.ndarray]:
+        with TaskDecoder(tmp_path) as decoder:
+            decoder.prefetch_videos(refs[1:])
+            return [decoder.decode(ref)[0] for ref in refs]
+
+    try:
+        set_decoder_threads(0)
+        default = decode_all()
+        set_decoder_threads(1)
+        assert AvifImagePlugin.DEFAULT_MAX_THREADS == 1
+        single = decode_all()
+    finally:
+        set_decoder_threads(0)
+    for a, b in zip(default, single, strict=True):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="threads"):
+        set_decoder_threads(-1)
