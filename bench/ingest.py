@@ -164,7 +164,7 @@ def bare_loop(plan, size: int) -> dict:
     from relightanyone.format.arrow_io import ZSTD_LEVEL
     from relightanyone.format.codecs import encode_image, encode_mask
 
-    configure_task_threads()
+    configure_task_threads()  # one AVIF thread, as in the tasks; videos are not timed here
     codec = pa.Codec("zstd", compression_level=ZSTD_LEVEL)
     views = [v for s in plan.subjects for v in s.views]
     with TaskDecoder(plan.source_root) as decoder:  # warm the imports and caches on one view

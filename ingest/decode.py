@@ -42,26 +42,28 @@ class DecodeError(ValueError):
     """A native image cannot be read; the message names the file (and member or frame) and why."""
 
 
-# Threads of the AVIF and video decoders; 0 keeps the libraries' default (one per CPU).
-_decoder_threads = 0
+# Threads of the video decoder (FFmpeg through PyAV); 0 keeps FFmpeg's default (one per CPU).
+_video_threads = 0
 
 
-def set_decoder_threads(count: int) -> None:
-    """Decode AVIF (libavif through Pillow) and video (FFmpeg through PyAV) with ``count`` threads in this
-    process; 0 restores the libraries' default, one thread per CPU.
+def set_decoder_threads(avif: int, video: int) -> None:
+    """Threads of the AVIF decoder (libavif through Pillow) and of the video decoder (FFmpeg through PyAV)
+    in this process; 0 restores a library's default, one thread per CPU.
 
-    Ingest tasks use 1: parallelism comes from the executor's workers, and a decoder that starts a thread
-    per CPU for every image oversubscribes the machine as soon as two workers run (it is also slower on
-    small images: 1.1 ms instead of 1.5 ms per 167×256 AVIF, the threads' start-up costing more than they
-    save). LibRaw's OpenMP demosaic and OpenEXR keep their own defaults.
+    Ingest tasks use one AVIF thread and their share of the CPUs for video
+    (:func:`~relightanyone.ingest.subject_task.configure_task_threads`): libavif's threads cost more than
+    they save on one still image (1.1 ms with one thread, 1.5 ms with two per 167×256 image; no gain at
+    667×1024), and starting a thread per CPU in every worker oversubscribes the machine as soon as two
+    workers run. FFmpeg's frame threads do pay off on long, large videos. LibRaw's OpenMP demosaic and
+    OpenEXR keep their own defaults.
     """
-    global _decoder_threads
-    if count < 0:
-        raise ValueError(f"decoder threads must be >= 0, got {count}")
+    global _video_threads
+    if avif < 0 or video < 0:
+        raise ValueError(f"decoder threads must be >= 0, got avif={avif}, video={video}")
     from PIL import AvifImagePlugin
 
-    AvifImagePlugin.DEFAULT_MAX_THREADS = count  # read by Pillow when it opens an AVIF file
-    _decoder_threads = count
+    AvifImagePlugin.DEFAULT_MAX_THREADS = avif  # read by Pillow when it opens an AVIF file
+    _video_threads = video
 
 
 def safe_member_name(member: str) -> str:
@@ -224,7 +226,7 @@ def decode_video_frames(path: Path, frame_indices: Iterable[int]) -> dict[int, n
         with av.open(str(path)) as container:
             stream = container.streams.video[0]
             stream.thread_type = "AUTO"
-            stream.codec_context.thread_count = _decoder_threads
+            stream.codec_context.thread_count = _video_threads
             for index, frame in enumerate(container.decode(stream)):
                 if index in wanted:
                     frames[index] = frame.to_ndarray(format="rgb24")

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from .records import DatasetPlan, SubjectPlan
-from .subject_task import IngestSettings, SubjectTask
+from .subject_task import IngestSettings, SubjectTask, decoder_share
 from .tracking import AlignmentError, Template, align_subject, load_template
 
 # Square crop side per preset (DESIGN §6: tiny/demo crops 128², paper 1024²).
@@ -305,6 +305,7 @@ def prepare(
         out_size=PRESET_SIZES[preset],
         margin=CROP_MARGIN,
         encoding=encoding or DEFAULT_IMAGE_ENCODING,
+        video_threads=decoder_share(workers, executor),
     )
     tasks = plan_tasks(plan, Path(tracking_dir) if tracking_dir else None, loaded, workers, executor)
     return settings, loaded, tasks

@@ -30,6 +30,18 @@ class IngestSettings:
     out_size: int
     margin: float
     encoding: str
+    video_threads: int = 1  # FFmpeg threads per task; not part of the dataset's fingerprint
+
+
+def decoder_share(workers: int, executor: str = "local") -> int:
+    """Video-decoder threads for each of ``workers`` tasks running at once: this machine's CPUs shared
+    out (at least 1); 1 on Ray, whose tasks each hold one CPU wherever they run."""
+    import os
+
+    if executor == "ray":
+        return 1
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, cpus // max(1, workers))
 
 
 @dataclass
@@ -122,14 +134,15 @@ def normalize_view(
     return out, mask, K_new, w2c, box
 
 
-def configure_task_threads() -> None:
-    """One thread per task: parallelism comes from the executor, and results stay deterministic."""
+def configure_task_threads(video_threads: int = 1) -> None:
+    """One thread per task: parallelism comes from the executor, and results stay deterministic. Only
+    the video decoder gets ``video_threads``, the worker's share of the CPUs (:func:`decoder_share`)."""
     import cv2
 
     from .decode import set_decoder_threads
 
     cv2.setNumThreads(1)
-    set_decoder_threads(1)
+    set_decoder_threads(avif=1, video=video_threads)
     try:
         import torch
 
@@ -145,7 +158,7 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
 
     from .decode import DecodeError, TaskDecoder, apply_colour_calibration
 
-    configure_task_threads()
+    configure_task_threads(settings.video_threads)
     plan = task.plan
     result = TaskResult(task.task, plan.subject, len(plan.views), 0, 0, 0)
     template = load_template(

@@ -270,14 +270,26 @@ def test_single_threaded_decoders_give_the_same_pixels(tmp_path):
             return [decoder.decode(ref)[0] for ref in refs]
 
     try:
-        set_decoder_threads(0)
+        set_decoder_threads(avif=0, video=0)
         default = decode_all()
-        set_decoder_threads(1)
+        set_decoder_threads(avif=1, video=1)
         assert AvifImagePlugin.DEFAULT_MAX_THREADS == 1
         single = decode_all()
     finally:
-        set_decoder_threads(0)
+        set_decoder_threads(avif=0, video=0)
     for a, b in zip(default, single, strict=True):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="threads"):
-        set_decoder_threads(-1)
+        set_decoder_threads(avif=-1, video=1)
+
+
+def test_each_worker_decodes_video_with_its_share_of_the_cpus():
+    import os
+
+    from relightanyone.ingest.subject_task import decoder_share
+
+    cpus = len(os.sched_getaffinity(0))
+    assert decoder_share(1) == cpus
+    assert decoder_share(cpus) == 1
+    assert decoder_share(4 * cpus) == 1
+    assert decoder_share(1, "ray") == 1
