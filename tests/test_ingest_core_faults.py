@@ -185,18 +185,24 @@ def test_corrupt_files_of_every_codec_raise_naming_the_file(tmp_path, codec):
         decoder.decode(ImageRef("bad.bin", codec))
 
 
-def test_video_frames_are_decoded_in_one_pass_and_corrupt_videos_refused(tmp_path):
+def _write_mp4(path: Path, frames: list[np.ndarray], crf: int, pix_fmt: str) -> None:
+    """H.264 video of ``frames`` (each ``(H, W, 3)`` uint8 RGB) at 25 fps."""
     import av
 
-    frames = [np.full((32, 48, 3), 40 * i, np.uint8) for i in range(5)]
-    with av.open(str(tmp_path / "cam.mp4"), "w", format="mp4") as container:
-        stream = container.add_stream("libx264", rate=25, options={"crf": "0"})
-        stream.width, stream.height, stream.pix_fmt = 48, 32, "yuv444p"
+    with av.open(str(path), "w", format="mp4") as container:
+        stream = container.add_stream("libx264", rate=25, options={"crf": str(crf)})
+        stream.height, stream.width = frames[0].shape[:2]
+        stream.pix_fmt = pix_fmt
         for frame in frames:
             for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
                 container.mux(packet)
         for packet in stream.encode():
             container.mux(packet)
+
+
+def test_video_frames_are_decoded_in_one_pass_and_corrupt_videos_refused(tmp_path):
+    frames = [np.full((32, 48, 3), 40 * i, np.uint8) for i in range(5)]
+    _write_mp4(tmp_path / "cam.mp4", frames, crf=0, pix_fmt="yuv444p")
     refs = [ImageRef("cam.mp4", "mp4-frame", frame_index=i) for i in (3, 1)]
     with TaskDecoder(tmp_path) as decoder:
         decoder.prefetch_videos(refs)
@@ -245,21 +251,13 @@ def test_local_pool_gives_the_same_bytes_as_one_process(capture, tmp_path):
 
 def test_single_threaded_decoders_give_the_same_pixels(tmp_path):
     """Tasks decode AVIF and video with one thread; the pixels must not depend on the thread count."""
-    import av
     from PIL import AvifImagePlugin, Image
     from relightanyone.ingest.decode import set_decoder_threads
 
     rng = np.random.default_rng(4)
     frames = [(rng.random((48, 64, 3)) * 255).astype(np.uint8) for _ in range(3)]
     Image.fromarray(frames[0]).save(tmp_path / "view.avif", quality=90)
-    with av.open(str(tmp_path / "cam.mp4"), "w", format="mp4") as container:
-        stream = container.add_stream("libx264", rate=25, options={"crf": "18"})
-        stream.width, stream.height, stream.pix_fmt = 64, 48, "yuv420p"
-        for frame in frames:
-            for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+    _write_mp4(tmp_path / "cam.mp4", frames, crf=18, pix_fmt="yuv420p")
     refs = [ImageRef("view.avif", "avif-srgb")] + [
         ImageRef("cam.mp4", "mp4-frame", frame_index=i) for i in range(3)
     ]
