@@ -169,21 +169,21 @@ def warp_native_to_row(
 
     The same filter as ingest's :func:`~relightanyone.ingest.steps.undistort_crop_resize`: when the row
     is coarser than the native image (``s = fx_native / fx_row > 1``), each pixel of the crop at the
-    native resolution (``round(s · width) × round(s · height)``) looks up the native pixel its ray hits
+    native resolution (``round(s · width)`` wide, the row's aspect kept) looks up the native pixel its ray hits
     (distortion applied, bilinear), then ``cv2.INTER_AREA`` averages every row pixel's footprint; else
     the row's own pixels look up the native image directly. Pixels outside the native image are 0.
     """
     import cv2
+    from relightanyone.model.fit_views import scale_intrinsics
 
     image = np.asarray(image, dtype=np.float32)
     scale = float(K_native[0, 0]) / float(K_row[0, 0])
-    fine_width, fine_height = width, height
-    fine_K = np.array(K_row, dtype=np.float64, copy=True)
+    fine_width, fine_height, fine_K = width, height, np.asarray(K_row, dtype=np.float64)
     if scale > 1.0 + 1e-6:
-        fine_width, fine_height = round(width * scale), round(height * scale)
-        for axis, ratio in ((0, fine_width / width), (1, fine_height / height)):
-            fine_K[axis, axis] *= ratio
-            fine_K[axis, 2] = (fine_K[axis, 2] + 0.5) * ratio - 0.5
+        fine_width = round(width * scale)
+        ratio = fine_width / width  # one ratio for both axes: rows are square crops
+        fine_height = round(height * ratio)
+        fine_K = scale_intrinsics(K_row, ratio)
     map_x, map_y = cv2.initUndistortRectifyMap(
         np.asarray(K_native, dtype=np.float64),
         np.asarray(dist, dtype=np.float64),

@@ -313,10 +313,10 @@ def from_transforms_json(
     raw_seen: dict[str, tuple] = {}
     for i, frame in enumerate(frames):
         field = f"frames[{i}]"
-        if per == "camera" and isinstance(frame, Mapping):
+        if isinstance(frame, Mapping):  # anything else is refused below, naming the field
             key = str(frame.get("camera_id", frame.get("camera_index", frame.get("file_path", i))))
             raw = tuple(frame.get(k) for k in _CAMERA_FIELDS)
-            if raw_seen.get(key) == raw:
+            if per == "camera" and raw_seen.get(key) == raw:
                 continue
 
         def value(key: str, default: float | None = None, frame: Any = frame, field: str = field) -> float:
@@ -336,7 +336,6 @@ def from_transforms_json(
         dist = np.array([value(k, default=0.0) for k in ("k1", "k2", "p1", "p2", "k3")])
         if value("k4", default=0.0) != 0:
             raise CalibrationError(name, f"{field}.k4", "fisheye k4 is not part of the OpenCV pinhole model")
-        key = str(frame.get("camera_id", frame.get("camera_index", frame.get("file_path", i))))
         w2c = _invert_rigid(c2w_gl @ GL_TO_CV)
         if per == "camera":
             if key in seen:
@@ -347,7 +346,7 @@ def from_transforms_json(
                     )
                 continue
             seen[key] = len(Ks)
-            raw_seen[key] = tuple(frame.get(k) for k in _CAMERA_FIELDS)
+            raw_seen[key] = raw
         names.append(key if per == "camera" else str(frame.get("file_path", i)))
         Ks.append(K)
         w2cs.append(w2c)
