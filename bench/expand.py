@@ -47,7 +47,7 @@ def machine_info() -> dict:
 def sphere_world(root: Path) -> tuple[Path, Path, Path]:
     """Build the tests' sphere world (flat=True) under ``root``: (flat dataset, stage-1 run, stage-2 run)."""
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-    from sphere_world import build_sphere_world
+    from helpers.sphere_world import build_sphere_world
 
     paths = build_sphere_world(root, flat=True)
     return paths["flat"], paths["stage1"], paths["stage2"]
@@ -64,7 +64,8 @@ def run_once(args, source: Path, stage1: Path, stage2: Path, device: str) -> dic
 
 def _expand(args, source: Path, stage1: Path, stage2: Path, device: str) -> dict:
     import torch
-    from relightanyone.pipelines.expand import expand_dataset, plan_expansion
+
+    from relightanyone.pipelines.expand.job import expand_dataset, plan_expansion
 
     torch.set_num_threads(1)  # what every expansion task uses
 

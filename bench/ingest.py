@@ -83,6 +83,7 @@ def mask_methods(world: Path, sizes=(128, 512, 1024), repeats: int = 5) -> dict:
     10 % margin); the masks of both methods are compared pixel for pixel.
     """
     import numpy as np
+
     from relightanyone.ingest.steps import (
         MeshSilhouette,
         crop_box_around_points,
@@ -158,11 +159,11 @@ def bare_loop(plan, size: int) -> dict:
     """
     import cv2
     import pyarrow as pa
-    from relightanyone.ingest.decode import TaskDecoder
-    from relightanyone.ingest.subject_task import configure_task_threads
 
     from relightanyone.format.arrow_io import ZSTD_LEVEL
     from relightanyone.format.codecs import encode_image, encode_mask
+    from relightanyone.ingest.decode import TaskDecoder
+    from relightanyone.ingest.subject_task import configure_task_threads
 
     configure_task_threads()  # one AVIF thread, as in the tasks; videos are not timed here
     codec = pa.Codec("zstd", compression_level=ZSTD_LEVEL)

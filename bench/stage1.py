@@ -69,12 +69,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
 
-    from relightanyone.model.colour_align import colour_cast_error, run_colour_warmup
-    from relightanyone.model.presets import get_preset
-    from relightanyone.model.render_stage1 import lighting_alignment_grid, load_run
-    from relightanyone.model.stage1 import Stage1Config, train_stage1
-
     from relightanyone.format.shards import dataset_dirs
+    from relightanyone.model.networks.presets import get_preset
+    from relightanyone.model.train.colour_warmup import colour_cast_error, run_colour_warmup
+    from relightanyone.model.train.run import lighting_alignment_grid, load_run
+    from relightanyone.model.train.stage1 import Stage1Config, train_stage1
 
     data = dataset_dirs(args.root)
     if not data:

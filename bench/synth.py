@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from relightanyone.synth.capture import HEAD_AIM_POINT, fibonacci_sphere, intrinsics, look_at_w2c
 from relightanyone.synth.presets import get_preset
 from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render

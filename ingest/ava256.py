@@ -39,7 +39,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from .records import (
+from relightanyone.ingest.records import (
     AdapterOptions,
     ColourCalibration,
     DatasetPlan,
@@ -217,8 +217,9 @@ def _scan_camera_zip(path: Path) -> tuple[dict[int, str], tuple[int, int] | None
 def _plan_capture(capture: Path, root: Path, options: AdapterOptions) -> SubjectPlan:
     """Views and refusals of one capture folder."""
     import torch
+
     from relightanyone.align.geometry import fold_head_pose
-    from relightanyone.render.calibration_io import AVA_FULL_SENSOR, CalibrationError, read_krt_json
+    from relightanyone.ingest.calibration import AVA_FULL_SENSOR, CalibrationError, read_krt_json
 
     subject = subject_of(capture)
     plan = SubjectPlan(subject=subject, split=options.split_of(subject), views=[])

@@ -129,8 +129,8 @@ def _adapter_command(command_name: str, module_name: str) -> click.Command:
         executor,
         dry_run,
     ):
-        from .records import AdapterOptions, LayoutError
-        from .runner import found_lines, ingest_dataset, prepare
+        from relightanyone.ingest.records import AdapterOptions, LayoutError
+        from relightanyone.ingest.runner import found_lines, ingest_dataset, prepare
 
         adapter = importlib.import_module(f"relightanyone.ingest.{module_name}")
         options = AdapterOptions(
@@ -145,7 +145,7 @@ def _adapter_command(command_name: str, module_name: str) -> click.Command:
         try:
             adapter.detect(src)
             if executor == "local" and not dry_run:
-                from .executors import warm_local_pool
+                from relightanyone.ingest.executors import warm_local_pool
 
                 # After the cheap layout check (a wrong SRC fails at once, with no pool to wait for), so the
                 # workers' imports overlap the planning.

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .records import (
+from relightanyone.ingest.records import (
     AdapterOptions,
     ColourCalibration,
     DatasetPlan,

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .records import ColourCalibration, ImageRef
+from relightanyone.ingest.records import ColourCalibration, ImageRef
 
 DISPLAY_CODECS = {"avif-srgb": "srgb", "png-srgb": "srgb", "jpg-srgb": "srgb", "mp4-frame": "srgb"}
 GAMMA22_CODECS = ("avif-gamma22",)

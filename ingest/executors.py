@@ -28,7 +28,7 @@ WORKER_PRELOAD = (
     "cv2",
     "trimesh",
     "torch",  # calibration readers return tensors; importing it in every worker costs seconds
-    "relightanyone.render.calibration_io",  # the tracker's cameras (imports kornia: 0.3 s per worker)
+    "relightanyone.ingest.calibration",  # the tracker's cameras (imports kornia: 0.3 s per worker)
 )
 
 
@@ -83,7 +83,7 @@ def run_tasks(
 ):
     """Run ``run_subject_task(writer, settings, task)`` for every task (:func:`map_items`); returns the
     results in task order. The progress bar counts views."""
-    from .subject_task import run_subject_task
+    from relightanyone.ingest.subject_task import run_subject_task
 
     bar = _bar(sum(len(t.plan.views) for t in tasks), progress, f"ingest {settings.dataset}")
     try:

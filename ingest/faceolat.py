@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .records import (
+from relightanyone.ingest.records import (
     AdapterOptions,
     ColourCalibration,
     DatasetPlan,
@@ -351,8 +351,8 @@ def _plan_subject(
     found: dict,
 ) -> SubjectPlan:
     """Views and refusals of one subject (all its captures)."""
-    from relightanyone.render.calibration_io import CalibrationError
-    from relightanyone.render.metashape_io import read_metashape_xml
+    from relightanyone.ingest.calibration import CalibrationError
+    from relightanyone.ingest.metashape import read_metashape_xml
 
     plan = SubjectPlan(subject=subject, split=options.split_of(subject), views=[])
     xml = f"{CAMERAS_DIR}/{subject}.xml"

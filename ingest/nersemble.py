@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .records import (
+from relightanyone.ingest.records import (
     AdapterOptions,
     ColourCalibration,
     DatasetPlan,
@@ -155,9 +155,8 @@ def scale_factor(K_sensor: np.ndarray, size: tuple[int, int], calibration: dict)
 
     K_sensor: (B, 3, 3). The sensor is the file's ``width``/``height`` or NeRSemble's 2200x3208 frame.
     """
-    from relightanyone.render.calibration_io import NERSEMBLE_FULL_SENSOR
-
-    from .ava256 import downsample_factor
+    from relightanyone.ingest.ava256 import downsample_factor
+    from relightanyone.ingest.calibration import NERSEMBLE_FULL_SENSOR
 
     sensor = (
         int(calibration.get("width", NERSEMBLE_FULL_SENSOR[0])),
@@ -174,7 +173,8 @@ def read_rig(path: Path, size: tuple[int, int]) -> tuple[dict[str, NativeCamera]
     import json
 
     import torch
-    from relightanyone.render.calibration_io import CalibrationError, from_nersemble_params
+
+    from relightanyone.ingest.calibration import CalibrationError, from_nersemble_params
 
     if not Path(path).is_file():
         raise CalibrationError(path, "<file>", "calibration file not found")
@@ -231,7 +231,7 @@ def _v1_colour(path: Path, source: str) -> ColourCalibration:
 def _plan_v2(
     folder: Path, root: Path, sequence: str, options: AdapterOptions, plan: SubjectPlan, facts: dict
 ) -> None:
-    from relightanyone.render.calibration_io import CalibrationError
+    from relightanyone.ingest.calibration import CalibrationError
 
     subject = plan.subject
     rel = folder.relative_to(root).as_posix() if folder != root else ""
@@ -336,7 +336,7 @@ def _plan_v2(
 def _plan_v1(
     folder: Path, root: Path, sequence: str, options: AdapterOptions, plan: SubjectPlan, facts: dict
 ) -> None:
-    from relightanyone.render.calibration_io import CalibrationError
+    from relightanyone.ingest.calibration import CalibrationError
 
     subject = plan.subject
     rel = folder.relative_to(root).as_posix() if folder != root else ""

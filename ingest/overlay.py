@@ -69,9 +69,8 @@ def reprojection_overlays(
     written by ingest (it holds ``meshes.arrow`` and ``template.obj``). Returns ``(H', W', 3)`` uint8 RGB."""
     from relightanyone.format.preview import linear_to_srgb_preview
     from relightanyone.format.reader import NormalizedDataset
-
-    from .runner import NECK_MASK_NAME, TEMPLATE_NAME
-    from .tracking import load_template
+    from relightanyone.ingest.runner import NECK_MASK_NAME, TEMPLATE_NAME
+    from relightanyone.ingest.tracking import load_template
 
     dataset_dir = Path(dataset_dir)
     template_path = dataset_dir / TEMPLATE_NAME

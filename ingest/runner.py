@@ -26,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .records import DatasetPlan, SubjectPlan
-from .subject_task import IngestSettings, SubjectTask, decoder_share
-from .tracking import AlignmentError, Template, align_subject, load_template
+from relightanyone.ingest.records import DatasetPlan, SubjectPlan
+from relightanyone.ingest.subject_task import IngestSettings, SubjectTask, decoder_share
+from relightanyone.ingest.tracking import AlignmentError, Template, align_subject, load_template
 
 # Square crop side per preset (DESIGN §6: tiny/demo crops 128², paper 1024²).
 PRESET_SIZES = {"tiny": 128, "demo": 128, "small": 512, "paper": 1024}
@@ -125,8 +125,8 @@ def plan_tasks(
     """Relate every (subject, frame) of ``plan`` to the tracking (no pixel is decoded): the VHAP export
     under ``tracking_dir``, or, without one, the meshes the plan ships (custom captures). Subjects are
     aligned in parallel on the ingest's executor."""
-    from .executors import map_items
-    from .tracking import shipped_tracking
+    from relightanyone.ingest.executors import map_items
+    from relightanyone.ingest.tracking import shipped_tracking
 
     subjects = sorted(plan.subjects, key=lambda s: s.subject)
     items = []
@@ -198,7 +198,6 @@ def _lights(plan: DatasetPlan, tasks: list[SubjectTask]) -> tuple[list, dict]:
     frames' ``canonical_from_native`` (the mean head pose), and the report gives the largest deviation.
     """
     from relightanyone.align.geometry import light_intensities_to_canonical, lights_to_canonical
-
     from relightanyone.format.schema import LightRow
 
     if plan.light_positions is None:
@@ -283,8 +282,7 @@ def prepare(
     unless the dataset folder holds ``template.obj``. ``workers``/``executor`` as for the ingest itself.
     """
     from relightanyone.format.codecs import DEFAULT_IMAGE_ENCODING
-
-    from .tracking import find_template
+    from relightanyone.ingest.tracking import find_template
 
     if preset not in PRESET_SIZES:
         raise ValueError(f"unknown preset {preset!r}; expected one of {', '.join(PRESET_SIZES)}")
@@ -366,8 +364,7 @@ def ingest_dataset(
     from relightanyone.format.arrow_io import atomic_write_bytes
     from relightanyone.format.schema import DatasetInfo, Provenance, QuarantineEntry
     from relightanyone.format.shards import ShardWriter
-
-    from .executors import run_tasks
+    from relightanyone.ingest.executors import run_tasks
 
     start = time.perf_counter()
     settings, loaded, tasks = prepared or prepare(

@@ -404,6 +404,7 @@ class MeshSilhouette:
         """``(ceil(H / b), ceil(W / b))`` bool: blocks a projected contour edge may cross (grown by one
         block, so the line drawing cannot miss one); None when a vertex is not in front of the camera."""
         import cv2
+
         from relightanyone.align.geometry import camera_centre
 
         cam = _camera_points(self.vertices, w2c)

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .records import (
+from relightanyone.ingest.records import (
     AdapterOptions,
     ColourCalibration,
     DatasetPlan,
@@ -126,7 +126,7 @@ def read_cameras(model: Path, metres: float) -> dict[str, NativeCamera]:
 
     Raises ``CalibrationError`` naming the folder and field when the model is unreadable or invalid.
     """
-    from relightanyone.render.calibration_io import CalibrationError, from_colmap
+    from relightanyone.ingest.calibration import CalibrationError, from_colmap
 
     rig = from_colmap(model)
     cameras: dict[str, NativeCamera] = {}
@@ -149,7 +149,7 @@ def read_cameras(model: Path, metres: float) -> dict[str, NativeCamera]:
 
 def decode_raw(path: Path) -> np.ndarray:
     """``(H, W, 3)`` float32 linear camera RGB of a DNG, decoded exactly as the runner decodes ``dng-raw``."""
-    from .decode import DecodeError, decode_bytes
+    from relightanyone.ingest.decode import DecodeError, decode_bytes
 
     try:
         data = Path(path).read_bytes()
@@ -180,8 +180,7 @@ def calibrate_cameras(
 ) -> tuple[dict[str, ColourCalibration], dict[str, dict], list[Refusal]]:
     """Chart-fitted colour calibration per camera, the fit residuals, and a refusal per failed camera."""
     from relightanyone.align.chart import ChartNotFoundError
-
-    from .decode import DecodeError
+    from relightanyone.ingest.decode import DecodeError
 
     calibrations, residuals, refusals = {}, {}, []
     for name in names:

@@ -229,12 +229,12 @@ def _native_frame(entry: dict, where: str) -> int:
 def read_vhap_subject(folder: Path) -> VhapSubject:
     """Read ``<folder>/transforms.json`` and find ``meshes/{t:05d}.obj`` (datasets.md §6.2).
 
-    Cameras come from :func:`relightanyone.render.calibration_io.from_transforms_json` (OpenGL
+    Cameras come from :func:`relightanyone.ingest.calibration.from_transforms_json` (OpenGL
     camera-to-world and flipped ``cy`` undone there), one per ``camera_id``.
     """
     import json
 
-    from relightanyone.render.calibration_io import from_transforms_json
+    from relightanyone.ingest.calibration import from_transforms_json
 
     folder = Path(folder)
     path = folder / "transforms.json"

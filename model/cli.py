@@ -9,8 +9,8 @@ import json
 from pathlib import Path
 
 import click
-from relightanyone.model.avatar_commands import COMMANDS as AVATAR_COMMANDS
-from relightanyone.model.evaluate_command import evaluate_command
+
+from relightanyone.model.avatar_cli import COMMANDS as AVATAR_COMMANDS
 
 PRESET_NAMES = ("tiny", "demo", "small", "paper")
 
@@ -97,9 +97,10 @@ def train_stage1_command(
     data-parallel. Run folder: checkpoint.pt, run.json, metrics.json, tensorboard/ (and warmup/).
     """
     import torch
-    from relightanyone.model.colour_align import run_colour_warmup
-    from relightanyone.model.presets import get_preset
-    from relightanyone.model.stage1 import Stage1Config, train_stage1
+
+    from relightanyone.model.networks.presets import get_preset
+    from relightanyone.model.train.colour_warmup import run_colour_warmup
+    from relightanyone.model.train.stage1 import Stage1Config, train_stage1
 
     if threads is not None:
         torch.set_num_threads(threads)
@@ -184,11 +185,11 @@ def align_colour_command(
     Example: relightanyone align-colour --data out/d1 --data out/ava256 --uncalibrated ava256 --out aligned
     """
     import torch
-    from relightanyone.model.colour_align import run_colour_warmup
-    from relightanyone.model.presets import get_preset
 
     from relightanyone.format.dataset_view import link_dataset_view
     from relightanyone.format.reader import load_manifest
+    from relightanyone.model.networks.presets import get_preset
+    from relightanyone.model.train.colour_warmup import run_colour_warmup
 
     if threads is not None:
         torch.set_num_threads(threads)
@@ -251,7 +252,7 @@ def render_group() -> None:
 )
 def render_stage1_command(run, subject, lighting_code, cameras, orbit_count, lighting_grid, out) -> None:
     """Render a stage-1 subject to PNGs (sRGB); report colour shift and geometry when swapping lighting codes."""
-    from relightanyone.model.render_stage1 import lighting_alignment_grid, load_run, render_subject
+    from relightanyone.model.train.run import lighting_alignment_grid, load_run, render_subject
 
     if subject is None and not lighting_grid:
         raise click.UsageError("give --subject, --lighting-grid, or both")
@@ -332,10 +333,9 @@ def train_stage2_command(
 
     Example: relightanyone train stage2 --data out/d1 --stage1 runs/s1 --preset demo --out runs/s2
     """
-    from relightanyone.model.presets import get_preset, get_stage2_preset
-    from relightanyone.model.stage2_train import Stage2Config, train_stage2
-
     from relightanyone.format.reader import IncompleteDatasetError
+    from relightanyone.model.networks.presets import get_preset, get_stage2_preset
+    from relightanyone.model.train.stage2 import Stage2Config, train_stage2
 
     chosen = get_stage2_preset(preset)
     changes = {k: v for k, v in (("iterations", iterations), ("batch_size", batch_size)) if v is not None}
@@ -436,9 +436,9 @@ def fit_command(
     Example: relightanyone fit --stage1 runs/s1 --stage2 runs/s2 --data out/faceolat --split test --out avatars
     """
     import torch
-    from relightanyone.model.fit import FitSettings, fit_subject
 
     from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
+    from relightanyone.model.fit.fitter import FitSettings, fit_subject
 
     if threads is not None:
         torch.set_num_threads(threads)
@@ -495,4 +495,3 @@ def fit_command(
 
 COMMANDS["fit"] = fit_command
 COMMANDS.update(AVATAR_COMMANDS)
-COMMANDS["evaluate"] = evaluate_command

@@ -8,8 +8,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
-from relightanyone.pipelines.expand_command import expand_command
-from relightanyone.pipelines.report_command import report_command
+
+from relightanyone.pipelines.expand.command import expand_command
+from relightanyone.pipelines.report.command import report_command
 
 SHIPPED_PIPELINES = ("demo", "real")
 
@@ -78,8 +79,8 @@ def run_command(
     """
     import sys
 
-    from .dag import StageFailed, execute, load_pipeline, plan
-    from .yaml_io import PipelineError, parse_var_overrides
+    from relightanyone.pipelines.dag.pipeline_file import PipelineError, parse_var_overrides
+    from relightanyone.pipelines.dag.runner import StageFailed, execute, load_pipeline, plan
 
     try:
         loaded = load_pipeline(_pipeline_path(pipeline), parse_var_overrides(variables))
@@ -144,7 +145,7 @@ def export_dataset_command(
     For tools outside this one: OUT/<subject>/<frame>/<camera>/<pattern>.exr and <pattern>.mask.png, one
     cameras.json row per image (K, w2c, size, file names) and lights.json (the rig of an OLAT dataset).
     """
-    from .export import ExportError, export_dataset
+    from relightanyone.pipelines.export import ExportError, export_dataset
 
     chosen = tuple(s.strip() for value in subjects for s in value.split(",") if s.strip()) or None
     try:

@@ -18,9 +18,8 @@ LAYER_CLI_MODULES = (
     "relightanyone.synth.cli",
     "relightanyone.ingest.cli",
     "relightanyone.format.cli",
-    "relightanyone.align.cli",
     "relightanyone.model.cli",
-    "relightanyone.render.cli",
+    "relightanyone.evaluation.cli",
     "relightanyone.pipelines.cli",
 )
 
@@ -33,12 +32,7 @@ class _OrderedGroup(click.Group):
 def _gather_commands() -> dict[str, click.Command]:
     commands: dict[str, click.Command] = {}
     for module_name in LAYER_CLI_MODULES:
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as error:
-            if error.name == module_name:  # that layer has no commands
-                continue
-            raise
+        module = importlib.import_module(module_name)
         for name, command in module.COMMANDS.items():
             if name in commands:
                 raise RuntimeError(f"command {name!r} is defined twice ({module_name})")

@@ -25,8 +25,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .lights import DirectionalLights
-from .sh import project_directions_to_sh
+from relightanyone.render.lights import DirectionalLights
+from relightanyone.render.sh import project_directions_to_sh
 
 
 def latlong_directions(height: int, width: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:

@@ -21,8 +21,12 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .rasterize_dense import composite_dense
-from .rasterize_torch import bin_gaussians_to_tiles, composite_tiles_torch, project_gaussians
+from relightanyone.render.rasterize_dense import composite_dense
+from relightanyone.render.rasterize_torch import (
+    bin_gaussians_to_tiles,
+    composite_tiles_torch,
+    project_gaussians,
+)
 
 BACKENDS = ("auto", "cpp", "torch", "dense", "gsplat")
 MODES = ("classic", "antialiased")
@@ -60,11 +64,11 @@ def select_backend(backend: str, means: Tensor) -> str:
     if backend != "auto":
         return backend
     if means.is_cuda:
-        from .rasterize_gsplat import gsplat_cuda_available
+        from relightanyone.render.rasterize_gsplat import gsplat_cuda_available
 
         return "gsplat" if gsplat_cuda_available() else "torch"
     if means.dtype == torch.float32:
-        from .rasterize_cpp import tile_kernel_available
+        from relightanyone.render.rasterize_cpp import tile_kernel_available
 
         if tile_kernel_available():
             return "cpp"
@@ -143,7 +147,7 @@ def rasterize(
     if chosen == "cpp" and tile_size != 16:
         raise ValueError(f"rasterize: backend 'cpp' uses 16x16 tiles, got tile_size={tile_size}")
     if chosen == "gsplat":
-        from .rasterize_gsplat import gsplat_cuda_available
+        from relightanyone.render.rasterize_gsplat import gsplat_cuda_available
 
         if not (means.is_cuda and gsplat_cuda_available()):
             raise ValueError(
@@ -151,7 +155,7 @@ def rasterize(
                 "use backend='auto' to fall back to the CPU backends"
             )
     if chosen == "gsplat":
-        from .rasterize_gsplat import rasterize_gsplat
+        from relightanyone.render.rasterize_gsplat import rasterize_gsplat
 
         return RasterOutput(
             *rasterize_gsplat(
@@ -175,7 +179,7 @@ def rasterize(
 
     compiled = None
     if chosen == "cpp":
-        from . import rasterize_cpp as compiled
+        from relightanyone.render import rasterize_cpp as compiled
 
         if compiled.load_tile_kernel() is None:
             compiled = None

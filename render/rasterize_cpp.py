@@ -17,8 +17,7 @@ from torch import Tensor
 
 from relightanyone.compiled import cache_dir, load_extension
 from relightanyone.compiled import extension_name as _extension_name
-
-from .rasterize_torch import Projection, TileBins
+from relightanyone.render.rasterize_torch import Projection, TileBins
 
 __all__ = ["cache_dir", "extension_name", "load_tile_kernel", "tile_kernel_available"]
 

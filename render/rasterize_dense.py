@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from .rasterize_torch import Projection, alpha_composite, gaussian_alphas
+from relightanyone.render.rasterize_torch import Projection, alpha_composite, gaussian_alphas
 
 DENSE_CHUNK_ELEMENTS = 1 << 21  # pixel × Gaussian pairs per chunk
 

@@ -30,8 +30,8 @@ import torch
 import torch.nn.functional as F
 from torch.utils.checkpoint import checkpoint
 
-from .envmap import PrefilteredEnvmap
-from .sh import project_directions_to_sh
+from relightanyone.render.envmap import PrefilteredEnvmap
+from relightanyone.render.sh import project_directions_to_sh
 
 RGCA_SG_CONSTANT = math.sqrt(2.0) * math.pi ** (2.0 / 3.0)  # 3.0335..., goliath sg.cu
 LOBE_NORMALIZATIONS = ("rgca", "unit", "none")

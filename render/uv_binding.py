@@ -18,7 +18,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .mesh import load_obj, validate_textured_mesh, vertex_normals
+from relightanyone.render.mesh import load_obj, validate_textured_mesh, vertex_normals
 
 # Candidate (face, texel) pairs tested at once; bounds memory to a few hundred MB at 1024^2.
 _CANDIDATES_PER_CHUNK = 4_000_000

@@ -62,7 +62,7 @@ def synth_command(
     """Write a synthetic ground-truth world: four native datasets, VHAP tracking and the answers."""
     import os
 
-    from .world import generate_world
+    from relightanyone.synth.world import generate_world
 
     chosen = _parse_datasets(datasets)
     workers = workers or max(1, min(2, os.cpu_count() or 1))
@@ -98,8 +98,8 @@ def _generic_preview(native_root: Path, count: int):
     import numpy as np
     from PIL import Image
 
-    from .capture import srgb_encode, to_uint8
-    from .envmap import read_exr
+    from relightanyone.synth.capture import srgb_encode, to_uint8
+    from relightanyone.synth.envmap import read_exr
 
     paths = sorted(p for p in native_root.rglob("*") if p.suffix.lower() in {".exr", ".avif", ".png", ".jpg"})
     views = []
@@ -120,7 +120,7 @@ def build_contact_sheet(world: Path, views_per_dataset: int = PREVIEW_VIEWS):
 
     import numpy as np
 
-    from .world import NATIVE_DIRS, dataset_module
+    from relightanyone.synth.world import NATIVE_DIRS, dataset_module
 
     description = json.loads((world / "world.json").read_text())
     rows = []

@@ -35,11 +35,11 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .d1_metashape import metashape_document
-from .envmap import write_exr
-from .presets import DatasetSize, Preset
-from .raytrace import PointLights, Scene, SynthCamera, render
-from .truth import CameraTruth, DatasetTruth
+from relightanyone.synth.d1_metashape import metashape_document
+from relightanyone.synth.envmap import write_exr
+from relightanyone.synth.presets import DatasetSize, Preset
+from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render
+from relightanyone.synth.truth import CameraTruth, DatasetTruth
 
 NATIVE_DIR = "faceolat"
 D1_RIG_SEED = 331  # the rig is the same in every world: lights come from this seed

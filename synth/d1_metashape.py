@@ -23,7 +23,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
-from .raytrace import SynthCamera
+from relightanyone.synth.raytrace import SynthCamera
 
 
 def _num(x: float) -> str:

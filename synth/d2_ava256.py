@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .capture import (
+from relightanyone.synth.capture import (
     HEAD_AIM_POINT,
     apply_colour_response,
     fibonacci_sphere,
@@ -43,10 +43,10 @@ from .capture import (
     to_uint8,
     write_zip,
 )
-from .presets import Preset
-from .raytrace import PointLights, Scene, SynthCamera, render
-from .template import HeadTemplate
-from .truth import CameraTruth, DatasetTruth
+from relightanyone.synth.presets import Preset
+from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render
+from relightanyone.synth.template import HeadTemplate
+from relightanyone.synth.truth import CameraTruth, DatasetTruth
 
 NATIVE_DIR = "ava256"
 SENSOR_SCALE = 4  # the calibration describes a sensor this many times larger than the written images
@@ -258,7 +258,7 @@ def preview_images(native_root: Path, count: int) -> list[tuple[str, np.ndarray]
     """Up to ``count`` (label, sRGB uint8 (H, W, 3)) views of the first capture, decoded from its zips."""
     import zipfile
 
-    from .capture import srgb_encode
+    from relightanyone.synth.capture import srgb_encode
 
     captures = sorted(p for p in Path(native_root).glob("*/decoder") if p.is_dir())
     if not captures:

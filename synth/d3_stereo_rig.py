@@ -30,7 +30,7 @@ from pidng.core import RAW2DNG, DNGTags, Tag
 from pidng.defs import CalibrationIlluminant, CFAPattern, DNGVersion, Orientation, PhotometricInterpretation
 from scipy.spatial.transform import Rotation
 
-from .capture import (
+from relightanyone.synth.capture import (
     HEAD_AIM_POINT,
     apply_colour_response,
     focal_for_field,
@@ -42,10 +42,10 @@ from .capture import (
     report_progress,
     spherical_direction,
 )
-from .presets import Preset
-from .raytrace import PointLights, Scene, SynthCamera, render, textured_quad
-from .template import HeadTemplate
-from .truth import CameraTruth, DatasetTruth
+from relightanyone.synth.presets import Preset
+from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render, textured_quad
+from relightanyone.synth.template import HeadTemplate
+from relightanyone.synth.truth import CameraTruth, DatasetTruth
 
 NATIVE_DIR = "stereo_rig"
 RAW_BITS = 12
@@ -311,7 +311,7 @@ def decode_dng(path: Path) -> np.ndarray:
 
 def preview_images(native_root: Path, count: int) -> list[tuple[str, np.ndarray]]:
     """A chart frame and the first subject's views, decoded from the DNGs and sRGB-encoded."""
-    from .capture import srgb_encode, to_uint8
+    from relightanyone.synth.capture import srgb_encode, to_uint8
 
     root = Path(native_root)
     paths = sorted((root / "calibration" / "colorchecker").glob("*.dng"))[:1]

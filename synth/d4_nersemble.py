@@ -27,7 +27,7 @@ import av
 import numpy as np
 from PIL import Image
 
-from .capture import (
+from relightanyone.synth.capture import (
     HEAD_AIM_POINT,
     apply_colour_response,
     focal_for_field,
@@ -42,10 +42,10 @@ from .capture import (
     srgb_encode,
     to_uint8,
 )
-from .presets import Preset
-from .raytrace import PointLights, Scene, SynthCamera, render, textured_quad
-from .template import HeadTemplate
-from .truth import CameraTruth, DatasetTruth
+from relightanyone.synth.presets import Preset
+from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render, textured_quad
+from relightanyone.synth.template import HeadTemplate
+from relightanyone.synth.truth import CameraTruth, DatasetTruth
 
 NATIVE_DIR = "nersemble"
 SERIALS = (

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .template import FEATURES, HeadTemplate, feature_weight, template_radius
+from relightanyone.synth.template import FEATURES, HeadTemplate, feature_weight, template_radius
 
 # Linear RGB skin albedos from very light to very dark; a subject's tone interpolates along this ramp.
 SKIN_RAMP = np.array(

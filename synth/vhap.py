@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .template import HeadTemplate, write_obj
-from .truth import DatasetTruth
+from relightanyone.synth.template import HeadTemplate, write_obj
+from relightanyone.synth.truth import DatasetTruth
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 TRAIN_FRACTION = 0.7

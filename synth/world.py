@@ -30,13 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .envmap import olat_relight_weights, procedural_envmaps, write_exr
-from .presets import Preset, get_preset
-from .raytrace import PointLights, Scene, SynthCamera, render
-from .subject import make_subject
-from .template import HeadTemplate, make_template, write_obj, write_template
-from .truth import DatasetTruth
-from .vhap import export_tracking
+from relightanyone.synth.envmap import olat_relight_weights, procedural_envmaps, write_exr
+from relightanyone.synth.presets import Preset, get_preset
+from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render
+from relightanyone.synth.subject import make_subject
+from relightanyone.synth.template import HeadTemplate, make_template, write_obj, write_template
+from relightanyone.synth.truth import DatasetTruth
+from relightanyone.synth.vhap import export_tracking
 
 DATASET_MODULES = {"d1": "d1_faceolat", "d2": "d2_ava256", "d3": "d3_stereo_rig", "d4": "d4_nersemble"}
 NATIVE_DIRS = {"d1": "faceolat", "d2": "ava256", "d3": "stereo_rig", "d4": "nersemble"}
@@ -144,7 +144,7 @@ def answer_lights(preset: Preset) -> tuple[PointLights, np.ndarray]:
 
     The rig is the one D1's generator uses (its own fixed seed), so answers and D1 share their lights.
     """
-    from .d1_faceolat import d1_rig_lights
+    from relightanyone.synth.d1_faceolat import d1_rig_lights
 
     rig = d1_rig_lights(preset)
     indices = np.unique(np.round(np.linspace(0, len(rig) - 1, preset.answer_lights)).astype(np.int64))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+
 from relightanyone.align.chart import (
     ChartNotFoundError,
     detect_colorchecker,

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
+
 from relightanyone.align.colour import (
     COLOUR_ALIGNMENT_FILENAME,
     apply_ccm,

@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from stage1_world import write_dataset
+from helpers.stage1_world import write_dataset
 
 from relightanyone.cli import cli
 from relightanyone.format.dataset_view import link_dataset_view

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
+
 from relightanyone.align.geometry import (
     MM_TO_M,
     camera_centre,
@@ -19,7 +21,6 @@ from relightanyone.align.geometry import (
     w2c_to_canonical,
 )
 from relightanyone.ingest.steps import project_points
-from scipy.spatial.transform import Rotation
 
 R_A = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix()
 R_B = Rotation.from_euler("zyx", [-10, 80, 5], degrees=True).as_matrix()

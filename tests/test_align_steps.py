@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 import trimesh
+
 from relightanyone.ingest.steps import (
     MeshSilhouette,
     crop_box_around_points,

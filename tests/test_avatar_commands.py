@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from relightanyone.model.avatar import FittedAvatar
-from relightanyone.model.avatar_commands import export_command, relight_command
-from relightanyone.model.fit import FitSettings, fit_subject
+from helpers.sphere_world import LIGHTS, RIG_INTENSITY, SIZE, build_sphere_world, sphere_camera
+
+from relightanyone.model.avatar_cli import export_command, relight_command
+from relightanyone.model.fit.avatar import FittedAvatar
+from relightanyone.model.fit.fitter import FitSettings, fit_subject
 from relightanyone.render.camera import Cameras
-from sphere_world import LIGHTS, RIG_INTENSITY, SIZE, build_sphere_world, sphere_camera
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -55,7 +56,7 @@ def _exr(path: Path) -> torch.Tensor:
 
 def test_export_re_renders_to_the_relit_avatar(fitted, tmp_path):
     from relightanyone.align.colour import linear_to_srgb
-    from relightanyone.model.ply import read_gaussian_ply
+    from relightanyone.model.fit.ply import read_gaussian_ply
     from relightanyone.render.rasterize import rasterize
 
     _, path, avatar = fitted
@@ -134,6 +135,7 @@ def test_olat_and_point_light_at_the_rig_light_give_the_same_frames(fitted, tmp_
 
 def test_orbit_and_rotating_environment_write_frames_sheet_and_strips(fitted, tmp_path):
     from PIL import Image
+
     from relightanyone.align.colour import linear_to_srgb
     from relightanyone.render.envmap import latlong_directions, save_envmap
 
@@ -268,8 +270,8 @@ def test_bad_inputs_give_clear_errors(fitted, tmp_path):
 def test_turning_a_prefiltered_map_equals_prefiltering_the_turned_map():
     import math
 
-    from relightanyone.model.avatar import prefilter_for_shading
-    from relightanyone.model.avatar_tools import rotate_prefiltered
+    from relightanyone.model.fit.avatar import prefilter_for_shading
+    from relightanyone.model.fit.avatar_tools import rotate_prefiltered
     from relightanyone.render.envmap import rotate_envmap_yaw
 
     env = torch.rand(3, 8, 16, generator=torch.Generator().manual_seed(3))
@@ -282,7 +284,7 @@ def test_turning_a_prefiltered_map_equals_prefiltering_the_turned_map():
 
 
 def test_frames_share_reflectance_and_splat_lightings_together_like_relight(fitted):
-    from relightanyone.model.avatar_tools import NamedLighting, render_frames
+    from relightanyone.model.fit.avatar_tools import NamedLighting, render_frames
 
     _, _, avatar = fitted
     cameras = Cameras.cat([_camera(0), _camera(3)]).with_names(["a", "b"])

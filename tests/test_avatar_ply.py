@@ -1,4 +1,4 @@
-"""The 3D Gaussian Splatting PLY writer and reader (relightanyone.model.ply)."""
+"""The 3D Gaussian Splatting PLY writer and reader (relightanyone.model.fit.ply)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 from plyfile import PlyData, PlyElement
-from relightanyone.model.ply import (
+
+from relightanyone.model.fit.ply import (
     SH_C0,
     gaussian_ply_properties,
     read_gaussian_ply,
@@ -78,7 +79,7 @@ def test_read_back_gives_the_activated_parameters(tmp_path):
 
 
 def test_read_back_renders_the_same_image(tmp_path):
-    from relightanyone.model.views import look_at_w2c
+    from relightanyone.model.networks.render import look_at_w2c
     from relightanyone.render.rasterize import rasterize
 
     gaussians = _gaussians(64, seed=2)

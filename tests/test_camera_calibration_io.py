@@ -10,7 +10,8 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from relightanyone.render.calibration_io import (
+
+from relightanyone.ingest.calibration import (
     CalibrationError,
     from_colmap,
     from_nersemble_params,
@@ -18,8 +19,8 @@ from relightanyone.render.calibration_io import (
     read_krt_json,
     read_krt_text,
 )
+from relightanyone.ingest.metashape import read_metashape_xml
 from relightanyone.render.camera import Cameras
-from relightanyone.render.metashape_io import read_metashape_xml
 
 ROT = cv2.Rodrigues(np.array([0.2, -0.4, 0.1]))[0]
 T_M = np.array([0.05, -0.1, 1.2])  # metres

@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+
 from relightanyone.render.camera import Cameras, rigid_inverse, similarity_scale
 
 

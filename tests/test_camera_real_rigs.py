@@ -7,9 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from relightanyone.render.calibration_io import read_krt_json, read_krt_text
+
+from relightanyone.ingest.calibration import read_krt_json, read_krt_text
+from relightanyone.ingest.metashape import read_metashape_xml
 from relightanyone.render.camera import Cameras
-from relightanyone.render.metashape_io import read_metashape_xml
 
 
 def convergence(cams: Cameras) -> tuple[np.ndarray, np.ndarray]:

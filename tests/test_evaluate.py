@@ -9,9 +9,18 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from relightanyone.model.eval_cases import relight_weights
-from relightanyone.model.eval_metrics import masked_psnr, masked_rmse, masked_ssim_score
-from relightanyone.model.eval_truth import (
+from helpers.sphere_world import (
+    LIGHTS,
+    RIG_INTENSITY,
+    SIZE,
+    build_sphere_world,
+    sphere_camera,
+    true_olat_image,
+)
+
+from relightanyone.evaluation.cases import relight_weights
+from relightanyone.evaluation.metrics import masked_psnr, masked_rmse, masked_ssim_score
+from relightanyone.evaluation.truth import (
     WorldAnswers,
     match_lights,
     read_answer_image,
@@ -19,7 +28,6 @@ from relightanyone.model.eval_truth import (
     world_to_normalized,
 )
 from relightanyone.render.envmap import save_envmap
-from sphere_world import LIGHTS, RIG_INTENSITY, SIZE, build_sphere_world, sphere_camera, true_olat_image
 
 
 def test_metrics_on_known_errors():
@@ -138,8 +146,8 @@ def write_sphere_answers(root: Path, paths: dict) -> Path:
 
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):
-    from relightanyone.model.eval_tables import EvaluationInputs, EvaluationSettings
-    from relightanyone.model.evaluate_command import run_evaluation
+    from relightanyone.evaluation.cli import run_evaluation
+    from relightanyone.evaluation.tables import EvaluationInputs, EvaluationSettings
 
     root = tmp_path_factory.mktemp("evaluate")
     paths = build_sphere_world(root / "world", flat=True, single_stage=True)
@@ -158,8 +166,8 @@ def evaluated(tmp_path_factory):
 
 
 def test_answers_are_warped_onto_the_analytic_truth(evaluated):
-    from relightanyone.model.eval_cases import answer_frame, answer_masks, answer_olat_cases
-    from relightanyone.model.fit import load_relightable_model
+    from relightanyone.evaluation.cases import answer_frame, answer_masks, answer_olat_cases
+    from relightanyone.model.fit.fitter import load_relightable_model
 
     answers = WorldAnswers(evaluated["world"])
     paths = evaluated["paths"]
@@ -182,7 +190,7 @@ def test_answers_are_warped_onto_the_analytic_truth(evaluated):
 def test_answer_masks_stay_inside_the_row_masks(evaluated):
     """The tables compare only what the dataset calls the subject: a row mask cut at some line limits
     the answer mask to it."""
-    from relightanyone.model.eval_cases import answer_frame, answer_masks
+    from relightanyone.evaluation.cases import answer_frame, answer_masks
 
     answers = WorldAnswers(evaluated["world"])
     frame = answer_frame(answers, "d2", evaluated["paths"]["flat"], "f01", ["cam01", "cam02"])
@@ -246,11 +254,11 @@ def test_tables_and_report(evaluated):
 
 
 def test_batched_point_light_renders_match_relight(evaluated):
-    from relightanyone.model.eval_cases import LightCase, view_cameras
-    from relightanyone.model.eval_single_stage import SingleStageFitter, load_single_stage_run
-    from relightanyone.model.eval_tables import EvalView, render_point_lights, render_weighted_rig
-    from relightanyone.model.fit import FitSettings, Fitter, load_relightable_model
-    from relightanyone.model.fit_views import load_fit_views
+    from relightanyone.evaluation.cases import LightCase, view_cameras
+    from relightanyone.evaluation.single_stage import SingleStageFitter, load_single_stage_run
+    from relightanyone.evaluation.tables import EvalView, render_point_lights, render_weighted_rig
+    from relightanyone.model.fit.fitter import FitSettings, Fitter, load_relightable_model
+    from relightanyone.model.fit.views import load_fit_views
     from relightanyone.render.lights import PointLights
 
     paths = evaluated["paths"]
@@ -288,7 +296,7 @@ def test_batched_point_light_renders_match_relight(evaluated):
 
 
 def test_full_on_equals_sum_of_olat_in_a_consistent_dataset(evaluated):
-    from relightanyone.model.eval_cases import olat_sum_over_full_on
+    from relightanyone.evaluation.cases import olat_sum_over_full_on
 
     ratio = olat_sum_over_full_on(evaluated["paths"]["data"], "s00", ["cam00", "cam02"])
     assert ratio == pytest.approx(1.0, abs=1e-3)

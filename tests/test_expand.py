@@ -16,13 +16,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from relightanyone.pipelines.expand import expand_dataset, plan_expansion
-from relightanyone.pipelines.expand_task import run_expand_task
-from sphere_world import LIGHTS, build_sphere_world, true_olat_image
+from helpers.sphere_world import LIGHTS, build_sphere_world, true_olat_image
 
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.shards import ShardWriter
 from relightanyone.format.validate import validate_path
+from relightanyone.pipelines.expand.job import expand_dataset, plan_expansion
+from relightanyone.pipelines.expand.task import run_expand_task
 
 FIT_ITERATIONS = (40, 10)
 NAME = "flat-olat"
@@ -157,7 +157,8 @@ def test_the_ray_executor_writes_the_same_bytes(world, expanded, tmp_path):
 
 def test_the_command_prints_a_dry_run_plan_and_names_a_wrong_run(world, tmp_path):
     from click.testing import CliRunner
-    from relightanyone.pipelines.expand_command import expand_command
+
+    from relightanyone.pipelines.expand.command import expand_command
 
     args = [str(world["flat"]), "--stage1", str(world["stage1"]), "--stage2", str(world["stage2"])]
     result = CliRunner().invoke(
@@ -174,9 +175,9 @@ def test_the_command_prints_a_dry_run_plan_and_names_a_wrong_run(world, tmp_path
 def test_an_expansion_exports_as_exr_files_with_its_rig(expanded, tmp_path):
     """Tools outside this one read an expansion like any normalized dataset: EXRs plus camera/light tables."""
     from click.testing import CliRunner
-    from relightanyone.pipelines.cli import export_dataset_command
 
     from relightanyone.format.reader import NormalizedDataset
+    from relightanyone.pipelines.cli import export_dataset_command
 
     _, _, folder = expanded
     result = CliRunner().invoke(

@@ -13,8 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from relightanyone.model.avatar import FittedAvatar
-from relightanyone.model.fit import (
+from helpers.sphere_world import LIGHTS, RIG_INTENSITY, SIZE, build_sphere_world
+
+from relightanyone.model.fit.avatar import FittedAvatar
+from relightanyone.model.fit.fitter import (
     FitSettings,
     Fitter,
     decode_codes,
@@ -23,10 +25,9 @@ from relightanyone.model.fit import (
     locality_codes,
     locality_loss,
 )
-from relightanyone.model.fit_views import load_fit_views, scale_intrinsics
+from relightanyone.model.fit.views import load_fit_views, scale_intrinsics
 from relightanyone.render.camera import Cameras
 from relightanyone.render.lights import PointLights
-from sphere_world import LIGHTS, RIG_INTENSITY, SIZE, build_sphere_world
 
 
 @pytest.fixture(scope="module", autouse=True)

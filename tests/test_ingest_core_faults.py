@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+
+from relightanyone.format.reader import NormalizedDataset
 from relightanyone.ingest import custom
 from relightanyone.ingest.decode import DecodeError, TaskDecoder
 from relightanyone.ingest.records import AdapterOptions, ImageRef, LayoutError
 from relightanyone.ingest.runner import ingest_dataset
-
-from relightanyone.format.reader import NormalizedDataset
 
 CAMERA_NAMES = ("c0", "c1", "c2", "c3")
 SIZE = (96, 128)  # width, height
@@ -27,6 +27,7 @@ SIZE = (96, 128)  # width, height
 def make_capture(root: Path, subjects=("s1", "s2"), frames=(0, 1)) -> Path:
     """A custom capture in metres: template.obj + neck mask at the root, 4 cameras, noise PNG images."""
     import cv2
+
     from relightanyone.synth.capture import look_at_w2c
     from relightanyone.synth.template import make_template, write_obj, write_template
 
@@ -252,6 +253,7 @@ def test_local_pool_gives_the_same_bytes_as_one_process(capture, tmp_path):
 def test_single_threaded_decoders_give_the_same_pixels(tmp_path):
     """Tasks decode AVIF and video with one thread; the pixels must not depend on the thread count."""
     from PIL import AvifImagePlugin, Image
+
     from relightanyone.ingest.decode import set_decoder_threads
 
     rng = np.random.default_rng(4)

@@ -12,14 +12,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from relightanyone.align.geometry import transform_points
+from relightanyone.format.reader import NormalizedDataset
 from relightanyone.ingest.records import AdapterOptions
 from relightanyone.ingest.runner import ingest_dataset
 from relightanyone.ingest.steps import crop_resize_intrinsics, mesh_mask, project_points
 from relightanyone.ingest.tracking import load_template, read_obj_vertices
 from relightanyone.synth.truth import DatasetTruth
-
-from relightanyone.format.reader import NormalizedDataset
 
 # dataset id -> (adapter module, native folder); subjects/cameras kept small for speed.
 DATASETS = {
@@ -160,6 +160,7 @@ def colour_error(dataset_dir: Path, truth: DatasetTruth, plan) -> tuple[float, f
     as stored, and after one gain for the whole dataset (calibrations against a chart fix colour, not
     absolute exposure)."""
     import cv2
+
     from relightanyone.ingest.decode import TaskDecoder
     from relightanyone.ingest.steps import undistort_crop_resize
 
@@ -195,12 +196,12 @@ def write_custom_capture(world: Path, out: Path, cameras: tuple[str, ...]) -> Da
     from dataclasses import replace
 
     import cv2
+
     from relightanyone.align.geometry import similarity
+    from relightanyone.format.codecs import encode_exr_half
     from relightanyone.ingest import faceolat
     from relightanyone.ingest.decode import TaskDecoder, apply_colour_calibration
     from relightanyone.synth.template import write_obj
-
-    from relightanyone.format.codecs import encode_exr_half
 
     truth = DatasetTruth.load(world / "answers" / "d1" / "truth.json")
     subject = sorted(truth.splits)[0]

@@ -12,6 +12,7 @@ import zipfile
 import numpy as np
 import pytest
 from PIL import Image
+
 from relightanyone.ingest import ava256, faceolat
 from relightanyone.ingest.records import AdapterOptions, LayoutError
 from relightanyone.synth.envmap import write_exr

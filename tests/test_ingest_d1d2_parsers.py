@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from relightanyone.ingest import ava256, faceolat
 from relightanyone.ingest.records import AdapterOptions
 

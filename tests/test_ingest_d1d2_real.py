@@ -11,10 +11,11 @@ import zipfile
 import numpy as np
 import pytest
 from PIL import Image
+from scipy.optimize import least_squares
+
 from relightanyone.ingest import ava256, faceolat
 from relightanyone.ingest.records import AdapterOptions
 from relightanyone.synth.envmap import write_exr
-from scipy.optimize import least_squares
 
 FACEOLAT_SIZE = (135, 256)  # 2160x4096 / 16: the same aspect ratio as the calibration
 AVA_SIZE = (667, 1024)  # the 4TB release: 2668x4096 / 4

@@ -10,12 +10,13 @@ import dataclasses
 
 import numpy as np
 import pytest
+from helpers.synth_judge import project, subject_vertices, truth_of
+
 from relightanyone.align.geometry import transform_points
 from relightanyone.ingest import ava256, faceolat
 from relightanyone.ingest.records import AdapterOptions, DatasetPlan
 from relightanyone.synth.presets import PRESETS, DatasetSize
 from relightanyone.synth.world import generate_world
-from synth_judge import project, subject_vertices, truth_of
 
 SMALL = dataclasses.replace(
     PRESETS["tiny"],

@@ -15,17 +15,17 @@ import av
 import cv2
 import numpy as np
 import pytest
+from helpers.synth_judge import project, subject_vertices
+
 from relightanyone.align.colour import srgb_to_linear
 from relightanyone.align.geometry import transform_points
+from relightanyone.format.reader import NormalizedDataset
 from relightanyone.ingest import nersemble, runner, stereo_rig
 from relightanyone.ingest.records import AdapterOptions
 from relightanyone.synth.d3_stereo_rig import decode_dng
 from relightanyone.synth.presets import PRESETS, DatasetSize
 from relightanyone.synth.truth import DatasetTruth
 from relightanyone.synth.world import generate_world
-from synth_judge import project, subject_vertices
-
-from relightanyone.format.reader import NormalizedDataset
 
 MINI = dataclasses.replace(
     PRESETS["tiny"],

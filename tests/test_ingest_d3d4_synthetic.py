@@ -17,13 +17,14 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
+from helpers.synth_judge import project, subject_vertices, truth_of
+
 from relightanyone.align.colour import linear_to_srgb, srgb_to_linear
 from relightanyone.align.geometry import transform_points
 from relightanyone.ingest import nersemble, stereo_rig
 from relightanyone.ingest.records import AdapterOptions, DatasetPlan, LayoutError
 from relightanyone.synth.presets import PRESETS, DatasetSize
 from relightanyone.synth.world import generate_world
-from synth_judge import project, subject_vertices, truth_of
 
 SMALL = dataclasses.replace(
     PRESETS["tiny"],
@@ -180,7 +181,7 @@ def test_d3_camera_without_a_detectable_chart_is_refused(world, tmp_path):
 
 
 def test_d3_invalid_model_stops_naming_the_folder(world, tmp_path):
-    from relightanyone.render.calibration_io import CalibrationError
+    from relightanyone.ingest.calibration import CalibrationError
 
     src = shutil.copytree(world / "stereo_rig", tmp_path / "stereo_rig")
     (src / "calibration/sparse/0/cameras.bin").write_bytes(b"\x01\x02")

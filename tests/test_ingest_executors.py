@@ -8,6 +8,7 @@ import os
 
 import numpy as np
 import pytest
+
 from relightanyone.ingest.executors import map_items, shutdown_pools, warm_local_pool
 from relightanyone.ingest.tracking import load_template
 from relightanyone.synth.template import make_template, write_obj, write_template

@@ -13,8 +13,11 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+
 from relightanyone.pipelines.cli import run_command
-from relightanyone.pipelines.dag import (
+from relightanyone.pipelines.dag.fingerprint import HashCache, fingerprint_path
+from relightanyone.pipelines.dag.pipeline_file import PipelineError
+from relightanyone.pipelines.dag.runner import (
     STAGE_LOG_NAME,
     STAGE_RECORD_NAME,
     StageFailed,
@@ -24,8 +27,6 @@ from relightanyone.pipelines.dag import (
     plan,
     read_record,
 )
-from relightanyone.pipelines.fingerprint import HashCache, fingerprint_path
-from relightanyone.pipelines.yaml_io import PipelineError
 
 STEP_SCRIPT = """
 import pathlib, sys

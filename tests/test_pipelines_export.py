@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from relightanyone.pipelines.cli import export_dataset_command
-from relightanyone.pipelines.export import ExportError, export_dataset, read_exr
 
 from relightanyone.format.codecs import decode_mask
 from relightanyone.format.examples import write_example_dataset
 from relightanyone.format.reader import NormalizedDataset
+from relightanyone.pipelines.cli import export_dataset_command
+from relightanyone.pipelines.export import ExportError, export_dataset, read_exr
 
 
 @pytest.fixture(scope="module")

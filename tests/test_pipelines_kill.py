@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from relightanyone.pipelines.dag import STAGE_RECORD_NAME, execute, load_pipeline, plan
+from relightanyone.pipelines.dag.runner import STAGE_RECORD_NAME, execute, load_pipeline, plan
 
 # A resumable, deterministic stage: writes parts one by one (each atomically), skipping finished ones, and
 # appends one line per part it wrote to a journal outside its output, so duplicated work would show.

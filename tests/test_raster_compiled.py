@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import pytest
 import torch
+from test_raster_reference import GAUSSIAN_INPUTS, assert_close, random_scene, render_with_grads
+
 from relightanyone.render.rasterize_cpp import bin_gaussians_to_tiles_cpp, tile_kernel_available
 from relightanyone.render.rasterize_torch import bin_gaussians_to_tiles, project_gaussians
-from test_raster_reference import GAUSSIAN_INPUTS, assert_close, random_scene, render_with_grads
 
 pytestmark = pytest.mark.skipif(
     not tile_kernel_available(), reason="C++ rasterizer kernel could not be built"

@@ -6,9 +6,10 @@ import warnings
 
 import pytest
 import torch
+from test_raster_reference import GAUSSIAN_INPUTS, random_scene
+
 from relightanyone.render import rasterize_cpp
 from relightanyone.render.rasterize import rasterize, select_backend
-from test_raster_reference import GAUSSIAN_INPUTS, random_scene
 
 BACKENDS = ["dense", "torch", "cpp"]
 BACKGROUND = torch.tensor([0.25, 0.5, 0.75])

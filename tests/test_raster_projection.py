@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import pytest
 import torch
+from test_raster_reference import random_scene
+
 from relightanyone.render.rasterize_torch import (
     bin_gaussians_to_tiles,
     covariances_from_quats_scales,
     project_gaussians,
 )
-from test_raster_reference import random_scene
 
 torch_impl = pytest.importorskip("gsplat.cuda._torch_impl", reason="gsplat (dev extra) is not installed")
 

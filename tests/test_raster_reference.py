@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+
 from relightanyone.render.rasterize_cpp import tile_kernel_available
 
 GAUSSIAN_INPUTS = ("means", "quats", "scales", "opacities", "features")

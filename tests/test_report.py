@@ -11,13 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from PIL import Image
-from relightanyone.pipelines.report import ReportInputs, ReportWarning, build_report
-from relightanyone.pipelines.report_browser import BrowserUnavailable, check_in_browser, find_chromium
-from relightanyone.pipelines.report_command import report_command
-from relightanyone.pipelines.report_html import markdown_to_html, rewrite_links
-from relightanyone.pipelines.report_metrics import metrics_tables
-from sphere_world import (
+from helpers.sphere_world import (
     LIGHTS,
     lambert_sphere,
     sphere_camera,
@@ -25,6 +19,7 @@ from sphere_world import (
     write_flat_world,
     write_olat_world,
 )
+from PIL import Image
 
 from relightanyone.format.schema import (
     DatasetInfo,
@@ -33,6 +28,11 @@ from relightanyone.format.schema import (
     fingerprint_config,
 )
 from relightanyone.format.shards import ShardWriter
+from relightanyone.pipelines.report.browser import BrowserUnavailable, check_in_browser, find_chromium
+from relightanyone.pipelines.report.build import ReportInputs, ReportWarning, build_report
+from relightanyone.pipelines.report.command import report_command
+from relightanyone.pipelines.report.html import markdown_to_html, rewrite_links
+from relightanyone.pipelines.report.metrics import metrics_tables
 
 SECTIONS = ["datasets", "pictures", "lighting", "expanded", "relighting", "evaluation", "metrics"]
 # Light k of the expanded world has intensity EXPANDED_INTENSITY[k]: light 3 is dimmest.

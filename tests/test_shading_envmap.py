@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
+
 from relightanyone.render.envmap import (
     direction_to_latlong_uv,
     envmap_to_directional_lights,

@@ -7,6 +7,7 @@ import json
 import pyarrow as pa
 import pytest
 import torch
+
 from relightanyone.render.lights import (
     DirectionalLights,
     PointLights,

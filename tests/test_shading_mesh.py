@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+
 from relightanyone.render.mesh import TexturedMesh, face_normals, load_obj, vertex_normals
 
 # Two triangles sharing the edge (0, 2); vertex 2 sits on a UV seam (two texture coordinates).

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+
 from relightanyone.render.sh import (
     eval_sh,
     irradiance_sh,

@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
+
 from relightanyone.render.envmap import envmap_to_directional_lights, latlong_directions, prefilter_envmap
 from relightanyone.render.lights import fibonacci_sphere_directions
 from relightanyone.render.sh import lambertian_transfer

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+
 from relightanyone.render.mesh import load_obj
 from relightanyone.render.uv_binding import UVBinding, texel_centre_uvs
 

@@ -7,9 +7,11 @@ import math
 import numpy as np
 import pytest
 import torch
-from relightanyone.model.colour_align import colour_cast_error, correction_from_render_matrix
-from relightanyone.model.gaussians import MAX_SCALE, MIN_SCALE
-from relightanyone.model.losses import (
+
+from relightanyone.model.networks.gaussians import MAX_SCALE, MIN_SCALE
+from relightanyone.model.networks.presets import LossWeights, get_preset
+from relightanyone.model.train.colour_warmup import colour_cast_error, correction_from_render_matrix
+from relightanyone.model.train.losses import (
     composite_over_background,
     masked_l1,
     masked_psnr,
@@ -19,9 +21,8 @@ from relightanyone.model.losses import (
     scale_bound_loss,
     vertex_l2,
 )
-from relightanyone.model.memory import estimate_training_memory
-from relightanyone.model.presets import LossWeights, get_preset
-from relightanyone.model.sampling import (
+from relightanyone.model.train.memory import estimate_training_memory
+from relightanyone.model.train.sampling import (
     background_colours,
     balanced_batch,
     choose_crop,

@@ -6,8 +6,9 @@ import math
 
 import pytest
 import torch
-from relightanyone.model.decoders import ConvUVDecoder, MeshDecoder, upsampling_channels
-from relightanyone.model.gaussians import (
+
+from relightanyone.model.networks.decoders import ConvUVDecoder, MeshDecoder, upsampling_channels
+from relightanyone.model.networks.gaussians import (
     MAX_SCALE,
     MIN_SCALE,
     TexelBinding,
@@ -17,8 +18,8 @@ from relightanyone.model.gaussians import (
     texel_positions,
     texel_spacing,
 )
-from relightanyone.model.presets import PRESETS, get_preset
-from relightanyone.model.stage1_model import Stage1Model
+from relightanyone.model.networks.presets import PRESETS, get_preset
+from relightanyone.model.networks.stage1 import Stage1Model
 
 
 def square_binding(uv_size: int) -> tuple[torch.Tensor, torch.Tensor, TexelBinding]:

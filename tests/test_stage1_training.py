@@ -15,12 +15,13 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from relightanyone.model.checkpoint import load_checkpoint
+from helpers.stage1_world import tiny_stage1_preset, train_script, write_dataset
+
 from relightanyone.model.cli import COMMANDS
-from relightanyone.model.data import Stage1Data
-from relightanyone.model.evaluate import evaluate_held_out
-from relightanyone.model.stage1 import Stage1Config, build_model, train_stage1
-from stage1_world import tiny_stage1_preset, train_script, write_dataset
+from relightanyone.model.train.checkpoint import load_checkpoint
+from relightanyone.model.train.data import Stage1Data
+from relightanyone.model.train.held_out import evaluate_held_out
+from relightanyone.model.train.stage1 import Stage1Config, build_model, train_stage1
 
 CAST = np.array([[1.3, 0.1, 0.0], [0.0, 0.9, 0.0], [0.0, 0.05, 0.6]])
 
@@ -151,7 +152,7 @@ def test_torchrun_two_gloo_processes_average_gradients(world, tmp_path):
 
 def test_colour_warmup_stores_the_inverse_matrix_and_the_loader_applies_it(world, tmp_path):
     from relightanyone.align.colour import read_learned_colour_matrix
-    from relightanyone.model.colour_align import run_colour_warmup
+    from relightanyone.model.train.colour_warmup import run_colour_warmup
 
     metrics = run_colour_warmup(
         world, tmp_path / "run", tiny_stage1_preset(warmup_iterations=6), ("db",), progress=False

@@ -7,9 +7,10 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
-from relightanyone.model.gaussians import TexelBinding, gather_texels
-from relightanyone.model.presets import get_preset
-from relightanyone.model.relight import (
+
+from relightanyone.model.networks.gaussians import TexelBinding, gather_texels
+from relightanyone.model.networks.presets import get_preset
+from relightanyone.model.networks.reflectance import (
     INITIAL_ALBEDO,
     INITIAL_VISIBILITY,
     activate_relight_params,
@@ -24,8 +25,8 @@ from relightanyone.model.relight import (
     relight,
     view_independent_channels,
 )
-from relightanyone.model.single_stage import SingleStageModel
-from relightanyone.model.stage2 import (
+from relightanyone.model.networks.single_stage import SingleStageModel
+from relightanyone.model.networks.stage2 import (
     RelightingUNet,
     Stage2Model,
     head_frame,
@@ -43,8 +44,9 @@ UV_SIZE = 16
 @pytest.fixture(scope="module")
 def sphere(tmp_path_factory):
     """Template vertices (V, 3) and the texel binding of a UV sphere (one seam) at UV 16²."""
+    from helpers.stage1_world import sphere_obj
+
     from relightanyone.render.mesh import load_obj
-    from stage1_world import sphere_obj
 
     path = tmp_path_factory.mktemp("sphere") / "template.obj"
     path.write_text(sphere_obj()[1])
@@ -120,7 +122,10 @@ def test_stage2_model_gradients_reach_both_decoders_and_view_only_moves_view_dep
 def test_untrained_outputs_are_rgca_defaults_over_a_lambertian_transfer():
     order = 3
     normals = F.normalize(torch.randn(1, 50, 3), dim=-1)
-    from relightanyone.model.relight import view_dependent_output_bias, view_independent_output_bias
+    from relightanyone.model.networks.reflectance import (
+        view_dependent_output_bias,
+        view_independent_output_bias,
+    )
 
     params = activate_relight_params(
         view_independent_output_bias(order).expand(1, 50, -1),

@@ -13,16 +13,16 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from relightanyone.model.checkpoint import load_checkpoint
-from relightanyone.model.stage1 import Stage1Config, train_stage1
-from relightanyone.model.stage2_train import Stage2Config, Stage2Trainer
-from sphere_world import LIGHTS, SIZE, lambert_sphere, sphere_camera, sphere_row
-from sphere_world import tiny_stage2_preset as sphere_tiny_stage2_preset
-from stage1_world import sphere_obj, tiny_stage1_preset
+from helpers.sphere_world import LIGHTS, SIZE, lambert_sphere, sphere_camera, sphere_row
+from helpers.sphere_world import tiny_stage2_preset as sphere_tiny_stage2_preset
+from helpers.stage1_world import sphere_obj, tiny_stage1_preset
 
 from relightanyone.format.examples import look_at_w2c
 from relightanyone.format.schema import DatasetInfo, LightRow, MeshRow, Provenance, fingerprint_config
 from relightanyone.format.shards import ShardWriter
+from relightanyone.model.train.checkpoint import load_checkpoint
+from relightanyone.model.train.stage1 import Stage1Config, train_stage1
+from relightanyone.model.train.stage2 import Stage2Config, Stage2Trainer
 
 LIGHT_INTENSITY = 2.5  # radiant intensity: about 2.5 W/m² on the sphere, radiance 0.2-0.5 per light
 
@@ -142,8 +142,8 @@ def test_stage2_trains_with_stage1_frozen_and_lowers_the_loss(olat_world, tmp_pa
     info = json.loads((out / "run.json").read_text())
     assert info["stage"] == "stage2" and info["frames"] == {"full_on": 6, "olat": 24} and info["lights"] == 4
     # The albedo follows the colours stage 2 is given (a shared prior let it predict one albedo for all).
-    from relightanyone.model.relight import camera_centres
-    from relightanyone.model.stage2 import texel_mesh_normals
+    from relightanyone.model.networks.reflectance import camera_centres
+    from relightanyone.model.networks.stage2 import texel_mesh_normals
 
     subjects = batches[0]["subject_index"]
     with torch.no_grad():
@@ -232,7 +232,7 @@ def test_cli_trains_stage2_and_explains_bad_input(olat_world, tmp_path):
         COMMANDS["train"], ["stage2", "--data", str(dataset), "--out", str(tmp_path / "x")]
     )
     assert missing.exit_code != 0 and "--stage1" in missing.output
-    from stage1_world import write_dataset
+    from helpers.stage1_world import write_dataset
 
     flat = write_dataset(tmp_path, "flat", subjects=1, cameras=2, size=16)
     no_rig = runner.invoke(

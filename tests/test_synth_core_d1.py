@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+
 from relightanyone.synth import d1_faceolat
 from relightanyone.synth.envmap import read_exr
 from relightanyone.synth.presets import DatasetSize, get_preset

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from relightanyone.synth.envmap import (
     envmap_light_weights,
     latlong_directions,

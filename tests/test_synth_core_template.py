@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 import trimesh
+
 from relightanyone.synth.presets import get_preset
 from relightanyone.synth.subject import make_subject
 from relightanyone.synth.template import make_template, read_obj, write_obj, write_template

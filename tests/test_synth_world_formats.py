@@ -12,6 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+
 from relightanyone.synth.presets import DatasetSize, get_preset
 from relightanyone.synth.raytrace import Scene, SynthCamera, render
 from relightanyone.synth.template import make_template, read_obj
@@ -194,6 +195,7 @@ def test_d2_archives_frame_list_and_dropped_frame(world):
 def test_d2_avif_holds_linear_recorded_colour(world):
     """Decoded codes / 255 match M @ (true linear render) within the codec's error."""
     from PIL import Image
+
     from relightanyone.synth.d2_ava256 import even_lights
 
     truth = load_truth(world, "d2")
@@ -242,6 +244,7 @@ def _read_exr(path):
 
 def test_d3_every_dng_reads_back_with_rawpy(world):
     import rawpy
+
     from relightanyone.synth.d3_stereo_rig import BLACK_LEVEL, WHITE_LEVEL
 
     width, height = micro_preset().d3.image_size
@@ -317,6 +320,7 @@ def test_d3_colmap_model_projects_where_the_renderer_drew_it(world):
 def test_d4_calibration_videos_and_colour_correction(world):
     import av
     import colour
+
     from relightanyone.synth.d4_nersemble import SEQUENCE, SERIALS
 
     truth = load_truth(world, "d4")

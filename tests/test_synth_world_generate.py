@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+
 from relightanyone.synth.cli import COMMANDS
 from relightanyone.synth.presets import DatasetSize, get_preset
 from relightanyone.synth.world import generate_world
@@ -132,7 +133,8 @@ def test_training_subjects_are_rendered_like_the_held_out_answers(nano_world):
     """The evaluation renders training subjects' OLAT truth on demand; for a held-out subject the same
     function reproduces the answers on disk, so both come from the same people and lights."""
     import numpy as np
-    from relightanyone.model.eval_truth import WorldAnswers, read_answer_image
+
+    from relightanyone.evaluation.truth import WorldAnswers, read_answer_image
     from relightanyone.synth.world import render_subject_olat
 
     answers = WorldAnswers(nano_world)

@@ -1,0 +1,537 @@
+"""The evaluation tables: fits of held-out subjects, relit and compared with the truth.
+
+* **Table 1** (OLAT relighting, paper Table 1 analogue): each test subject of the OLAT dataset is fitted on
+  its full-on frame (multi-view) with the two-stage model and with the single-stage baseline; both are
+  relit under rig lights and compared with the subject's OLAT images.
+* **Table 2** (environment maps, paper Table 2 analogue): the same subjects, fitted from one image (the
+  most frontal camera) and from all views, relit by the world's environment maps; the truth is the world's
+  image-based relighting of its true OLAT images, and the model's OLAT renders are combined the same way.
+* **Table 3** (lighting-code ablation, not measurable in the paper): flat-lit test subjects fitted on
+  their full-on frame with the OLAT dataset's lighting code z_l (the method) and with their own dataset's
+  z_l (no lighting alignment), compared with their true OLAT images.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from relightanyone.evaluation.cases import (
+    EvalView,
+    LightCase,
+    answer_envmap_cases,
+    answer_frame,
+    answer_masks,
+    answer_olat_cases,
+    callable_olat_cases,
+    expected_olat_over_full_on,
+    has_olat_rows,
+    olat_sum_over_full_on,
+    row_olat_cases,
+    stack_truth,
+    view_cameras,
+)
+from relightanyone.evaluation.metrics import LpipsMetric, image_metrics, lpips_status
+from relightanyone.evaluation.truth import WorldAnswers
+from relightanyone.render.lights import PointLights
+
+# true_image(dataset, subject, camera, light) -> (image (H, W, 3), mask (H, W)) in the row's geometry.
+TrueOlatImage = Callable[[str, str, str, int], tuple[np.ndarray, np.ndarray]]
+UNIT_TOLERANCE = 1.25  # answers are rescaled only when their unit differs from the rows' by more
+
+
+@dataclass
+class EvaluationSettings:
+    """Budget and limits of an evaluation run."""
+
+    inversion_iterations: int = 100
+    finetune_iterations: int = 100
+    max_views: int | None = 8  # cameras per fit and per comparison, evenly spread over the rig
+    lights_subset: int | None = 16  # OLAT lights compared (evenly spread rig indices)
+    envmaps: int | None = None  # environment maps compared (all when None)
+    subjects_per_dataset: int | None = 1  # held-out subjects per dataset (all when None)
+    views_per_step: int = 4
+    seed: int = 0
+    progress: bool = True
+
+
+@dataclass
+class EvaluationInputs:
+    """What is evaluated: normalized datasets keyed by their world dataset name (d1..d4), the runs, and
+    the truth (a synthetic world's answers, and/or an analytic OLAT truth)."""
+
+    datasets: dict[str, Path]
+    stage1: Path
+    stage2: Path
+    single_stage: Path | None = None
+    answers: WorldAnswers | None = None
+    true_olat_image: TrueOlatImage | None = None
+
+
+@dataclass
+class Comparison:
+    """Per-image metrics of one method on a set of cases, with one example row for the image grid."""
+
+    scores: dict[str, list[float]] = field(default_factory=dict)
+    examples: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
+
+    def add(
+        self, label: str, prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, lpips
+    ) -> None:
+        for name, values in image_metrics(prediction, truth, mask, lpips).items():
+            self.scores.setdefault(name, []).extend(float(v) for v in values)
+        self.examples.append((label, prediction[0].numpy(), truth[0].numpy(), mask[0, 0].numpy()))
+
+    def summary(self) -> dict[str, float]:
+        return {name: float(np.mean(values)) for name, values in self.scores.items()} | {
+            "images": len(next(iter(self.scores.values()), []))
+        }
+
+
+def evenly_spread(count: int, limit: int | None) -> list[int]:
+    """``limit`` indices spread evenly over range(count) (all of them when limit is None or larger)."""
+    if limit is None or limit >= count:
+        return list(range(count))
+    return sorted({int(round(i)) for i in np.linspace(0, count - 1, max(1, limit))})
+
+
+def subject_cameras(dataset_dir: Path, subject: str, limit: int | None) -> tuple[list[str], str]:
+    """(cameras of the first full-on frame, evenly limited; the most frontal of them: centre nearest +z)."""
+    from relightanyone.format.reader import NormalizedDataset
+
+    dataset = NormalizedDataset(dataset_dir)
+    rows = [dataset.row(k) for k in dataset.select(subjects=subject, patterns="full")]
+    if not rows:
+        raise ValueError(f"{dataset.path}: subject {subject!r} has no full-on rows to fit")
+    frame = min(r.frame for r in rows)
+    rows = sorted((r for r in rows if r.frame == frame), key=lambda r: r.camera)
+    rows = [rows[i] for i in evenly_spread(len(rows), limit)]
+
+    def frontality(row) -> float:
+        centre = -row.w2c[:3, :3].T @ row.w2c[:3, 3]
+        return float(centre[2] / max(np.linalg.norm(centre), 1e-9))
+
+    return [r.camera for r in rows], max(rows, key=frontality).camera
+
+
+def test_subjects(inputs: EvaluationInputs, world_name: str, limit: int | None) -> list[str]:
+    """Held-out subjects: the world's splits when answers are given, else the rows' "test" split."""
+    from relightanyone.format.reader import NormalizedDataset
+
+    dataset = NormalizedDataset(inputs.datasets[world_name])
+    if inputs.answers is not None and world_name in inputs.answers.splits:
+        names = [s for s in inputs.answers.test_subjects(world_name) if s in dataset.subjects]
+    else:
+        names = sorted({dataset.row(k).subject for k in dataset.select(splits="test")})
+    return names if limit is None else names[:limit]
+
+
+@torch.no_grad()
+def render_point_lights(avatar, cameras, lights: PointLights) -> torch.Tensor:
+    """The avatar under each of L point lights alone -> (L, V, 3, H, W), in one splat per view.
+
+    Works for any avatar :func:`relightanyone.model.fit.avatar.relight_views` accepts (the fitted two-stage
+    avatar and the single-stage one): the reflectance is decoded once per view and the L relit colours are
+    splatted as 3L feature channels.
+    """
+    singles = [
+        PointLights(lights.positions[k : k + 1], lights.intensities[k : k + 1]) for k in range(len(lights))
+    ]
+    return render_lightings(avatar, cameras, singles)
+
+
+def render_lightings(avatar, cameras, lightings: list[PointLights]) -> torch.Tensor:
+    """The avatar in ``cameras`` under each of P light sets -> (P, V, 3, H, W), all in one pass."""
+    from relightanyone.model.fit.avatar import check_pinhole_cameras, relight_views
+
+    width, height = check_pinhole_cameras(cameras)
+    return relight_views(
+        avatar,
+        cameras.w2c.float(),
+        cameras.K.float(),
+        width,
+        height,
+        lightings,
+        lightings_per_pass=len(lightings),
+    )
+
+
+@torch.no_grad()
+def render_weighted_rig(avatar, cameras, cases: list[LightCase]) -> torch.Tensor:
+    """The avatar under each case's weighted rig, every light on at once -> (E, V, 3, H, W).
+
+    A case's lighting is its basis lights with intensities scaled by its per-channel weights: the
+    environment as the light stage discretizes it, which is also how the truth was relit. The model
+    shades it in one pass, as RGCA shades an environment. Summing its single-light renders instead would
+    not be the model's prediction: its shading clamps negative diffuse per render, so the negative lobes
+    its low-order transfer gives lights behind the head, which cancel in a joint render, would each be
+    clamped to zero and the sum would come out too bright.
+    """
+    lightings = []
+    for case in cases:
+        weights = torch.as_tensor(case.weights, dtype=torch.float32)
+        lightings.append(PointLights(case.basis.positions, case.basis.intensities.float() * weights))
+    return render_lightings(avatar, cameras, lightings)
+
+
+def compare(avatar, cases: list[LightCase], lpips) -> Comparison:
+    """Render every case (grouped by camera set: one batched render per group) and score it."""
+    comparison = Comparison()
+    groups: dict[tuple[str, ...], list[LightCase]] = {}
+    for case in cases:
+        groups.setdefault(tuple(v.camera for v in case.views), []).append(case)
+    predictions: dict[int, torch.Tensor] = {}
+    for group in groups.values():
+        cameras = view_cameras(group[0].views)
+        olat = [c for c in group if c.light is not None]
+        if olat:
+            lights = PointLights(
+                torch.cat([c.light.positions for c in olat]), torch.cat([c.light.intensities for c in olat])
+            )
+            for case, image in zip(olat, render_point_lights(avatar, cameras, lights), strict=True):
+                predictions[id(case)] = image
+        relit = [c for c in group if c.light is None]
+        if relit:
+            for case, image in zip(relit, render_weighted_rig(avatar, cameras, relit), strict=True):
+                predictions[id(case)] = image
+    for case in cases:
+        truth, mask = stack_truth(case.views)
+        comparison.add(case.label, predictions[id(case)], truth, mask, lpips)
+    return comparison
+
+
+class Evaluation:
+    """Runs the three tables; ``results`` is the JSON-ready summary, ``grids`` the example images."""
+
+    def __init__(self, inputs: EvaluationInputs, settings: EvaluationSettings) -> None:
+        from relightanyone.model.fit.fitter import load_relightable_model
+
+        self.inputs = inputs
+        self.settings = settings
+        self.model = load_relightable_model(inputs.stage1, inputs.stage2)
+        self.single = None
+        if inputs.single_stage is not None:
+            from relightanyone.evaluation.single_stage import load_single_stage_run
+
+            self.single = load_single_stage_run(inputs.single_stage)
+        available, reason = lpips_status()
+        self.lpips = LpipsMetric() if available else None
+        self.lpips_note = reason
+        self.olat_world = self._olat_world_name()
+        rig_size = len(self.model.rig)
+        self.light_indices = evenly_spread(rig_size, settings.lights_subset)
+        self.results: dict = {"lpips": reason, "timings_s": {}, "units": {}}
+        self.grids: dict[str, list] = {}
+        self.inputs_images: dict[str, np.ndarray] = {}
+
+    def _olat_world_name(self) -> str:
+        from relightanyone.format.reader import NormalizedDataset
+
+        for world_name, path in self.inputs.datasets.items():
+            if NormalizedDataset(path).name == self.model.olat_dataset:
+                return world_name
+        raise ValueError(
+            f"stage-2 run {self.inputs.stage2} was trained on dataset {self.model.olat_dataset!r}, which is "
+            f"not among the evaluated datasets {sorted(self.inputs.datasets)}; pass it with --data"
+        )
+
+    # -- fitting ---------------------------------------------------------------------------------------
+    def fit_settings(self):
+        from relightanyone.model.fit.fitter import FitSettings
+
+        return FitSettings(
+            inversion_iterations=self.settings.inversion_iterations,
+            finetune_iterations=self.settings.finetune_iterations,
+            views_per_step=self.settings.views_per_step,
+            seed=self.settings.seed,
+            progress=self.settings.progress,
+        )
+
+    def fit(self, world_name: str, subject: str, cameras: list[str], label: str, model=None, single=False):
+        """Fit a subject's full-on frame in ``cameras``; returns the avatar (timed under ``label``)."""
+        from relightanyone.model.fit.fitter import Fitter
+        from relightanyone.model.fit.views import load_fit_views
+
+        views = load_fit_views(self.inputs.datasets[world_name], subject, cameras=cameras)
+        self.inputs_images.setdefault(f"{world_name}/{subject}", views.images[0].permute(1, 2, 0).numpy())
+        torch.manual_seed(self.settings.seed)
+        start = time.perf_counter()
+        if single:
+            from relightanyone.evaluation.single_stage import SingleStageFitter
+
+            fitter = SingleStageFitter(self.single, views, self.fit_settings())
+        else:
+            fitter = Fitter(model or self.model, views, self.fit_settings())
+        fitter.invert()
+        fitter.finetune()
+        avatar = fitter.avatar()
+        self.results["timings_s"][f"{world_name}/{subject} {label}"] = round(time.perf_counter() - start, 2)
+        return avatar
+
+    # -- truth -----------------------------------------------------------------------------------------
+    def olat_cases(self, world_name: str, subject: str, cameras: list[str]) -> tuple[list[LightCase], str]:
+        """OLAT ground truth of a subject and where it came from."""
+        data = self.inputs.datasets[world_name]
+        rig = self.model.rig
+        if has_olat_rows(data, subject):
+            return row_olat_cases(data, subject, rig, self.light_indices, cameras), "normalized OLAT rows"
+        if self.inputs.true_olat_image is not None:
+            rows = self._row_views(world_name, subject, cameras)
+            truth = lambda camera, light: self.inputs.true_olat_image(world_name, subject, camera, light)  # noqa: E731
+            return callable_olat_cases(truth, rows, rig, self.light_indices), "analytic OLAT truth"
+        if self.inputs.answers is not None:
+            frame = answer_frame(self.inputs.answers, world_name, data, subject, cameras)
+            masks = answer_masks(self.inputs.answers, frame)
+            cases = answer_olat_cases(self.inputs.answers, frame, rig, self.light_indices, masks)
+            scale = self.results["units"].get("answer_scale")
+            if scale is not None:
+                for case in cases:
+                    for view in case.views:
+                        view.image = view.image * np.asarray(scale, dtype=np.float32)
+            return cases, "world answers (warped into the row crops)"
+        raise ValueError(f"no OLAT truth for {world_name}/{subject}: pass the world (--world)")
+
+    def _row_views(self, world_name: str, subject: str, cameras: list[str]) -> list[EvalView]:
+        from relightanyone.format.reader import NormalizedDataset
+
+        dataset = NormalizedDataset(self.inputs.datasets[world_name])
+        rows = [dataset.row(k) for k in dataset.select(subjects=subject, patterns="full")]
+        frame = min(r.frame for r in rows)
+        by_camera = {r.camera: r for r in rows if r.frame == frame}
+        return [
+            EvalView(c, by_camera[c].K, by_camera[c].w2c, by_camera[c].width, by_camera[c].height, None, None)
+            for c in cameras
+        ]
+
+    def check_units(
+        self, world_name: str, subject: str, cameras: list[str], row_cases: list[LightCase]
+    ) -> None:
+        """Compare the subject's OLAT rows with the answers of the same lights: one ratio per channel."""
+        answers = self.inputs.answers
+        if answers is None or world_name not in answers.splits or not row_cases:
+            return
+        frame = answer_frame(answers, world_name, self.inputs.datasets[world_name], subject, cameras)
+        masks = answer_masks(answers, frame)
+        answer_cases = {
+            c.label: c for c in answer_olat_cases(answers, frame, self.model.rig, self.light_indices, masks)
+        }
+        rows_total, answer_total = np.zeros(3), np.zeros(3)
+        for case in row_cases:
+            if case.label in answer_cases:
+                rows_total += sum(v.image.sum(axis=(0, 1)) for v in case.views)
+                answer_total += sum(v.image.sum(axis=(0, 1)) for v in answer_cases[case.label].views)
+        if not answer_total.all():
+            return
+        ratio = rows_total / answer_total
+        agree = bool(np.all((ratio < UNIT_TOLERANCE) & (ratio > 1 / UNIT_TOLERANCE)))
+        self.results["units"] = {
+            "rows_over_answers": ratio.round(4).tolist(),
+            "subject": f"{world_name}/{subject}",
+            "agree": agree,
+            "note": "answer OLAT images and the OLAT rows share one unit; answers are used as they are"
+            if agree
+            else "answers were rescaled by rows_over_answers to the model's unit",
+        }
+        if not agree:
+            self.results["units"]["answer_scale"] = ratio.tolist()
+
+    # -- tables ----------------------------------------------------------------------------------------
+    def table1_and_2(self) -> None:
+        world_name = self.olat_world
+        table1, table2 = {}, {}
+        for subject in test_subjects(self.inputs, world_name, self.settings.subjects_per_dataset):
+            key = f"{world_name}/{subject}"
+            cameras, frontal = subject_cameras(
+                self.inputs.datasets[world_name], subject, self.settings.max_views
+            )
+            ours = self.fit(world_name, subject, cameras, "two-stage multi-view")
+            cases, source = self.olat_cases(world_name, subject, cameras)
+            if source == "normalized OLAT rows":
+                self.check_units(world_name, subject, cameras, cases)
+                ratio = olat_sum_over_full_on(self.inputs.datasets[world_name], subject, cameras[:2])
+                self.results["units"]["olat_sum_over_full_on"] = ratio
+                self.results["units"]["expected_from_lights"] = expected_olat_over_full_on(
+                    self.inputs.datasets[world_name]
+                )
+            rows = {"two_stage": compare(ours, cases, self.lpips)}
+            if self.single is not None:
+                baseline = self.fit(world_name, subject, cameras, "single-stage multi-view", single=True)
+                rows["single_stage"] = compare(baseline, cases, self.lpips)
+            table1[key] = {
+                "source": source,
+                "cameras": cameras,
+                "lights": [c.label for c in cases],
+                "seen_in_training": self.seen_in_training(world_name, subject),
+                "rows": rows,
+            }
+            table2_entry = self.table2_subject(world_name, subject, cameras, frontal, ours)
+            if table2_entry is not None:
+                table2[key] = table2_entry
+        self.tables = {"table1": table1, "table2": table2}
+
+    def table2_subject(self, world_name, subject, cameras, frontal, multi_view_avatar):
+        answers = self.inputs.answers
+        if answers is None or world_name not in answers.splits or not answers.envmap_names():
+            return None
+        envmaps = answers.envmap_names()
+        envmaps = [envmaps[i] for i in evenly_spread(len(envmaps), self.settings.envmaps)]
+        frame = answer_frame(answers, world_name, self.inputs.datasets[world_name], subject, cameras)
+        cases = answer_envmap_cases(answers, frame, self.model.rig, envmaps, answer_masks(answers, frame))
+        single_image = self.fit(world_name, subject, [frontal], "two-stage single image")
+        return {
+            "source": "world answers relit by image-based relighting (weights recovered from the answers)",
+            "seen_in_training": self.seen_in_training(world_name, subject),
+            "cameras": cameras,
+            "single_image_camera": frontal,
+            "envmaps": envmaps,
+            "weight_fit_max_residual": max(c.extra["weight_fit_max_residual"] for c in cases),
+            "rows": {
+                "multi_view": compare(multi_view_avatar, cases, self.lpips),
+                "single_image": compare(single_image, cases, self.lpips),
+            },
+        }
+
+    def table3(self) -> None:
+        """The lighting-code ablation on flat-lit datasets, with and without the OLAT dataset's z_l.
+
+        ``table3``: stage-1 training subjects decoded from their identity codes, no fitting (what the OLAT
+        expansion renders), so nothing can absorb the code's effect. ``table3_fitted``: held-out subjects
+        fitted on their full-on frame; fitting also estimates the scene lighting and finetunes stage 1.
+        """
+        from relightanyone.format.reader import NormalizedDataset
+        from relightanyone.format.schema import make_mesh_key
+        from relightanyone.model.fit.avatar import decoded_avatar
+
+        stage1_names = self._stage1_dataset_names()
+        stage1_subjects = self._stage1_subjects()
+        decoded, fitted = {}, {}
+        for world_name, path in sorted(self.inputs.datasets.items()):
+            dataset = NormalizedDataset(path)
+            if world_name == self.olat_world or dataset.manifest.info.kind != "flat":
+                continue
+            if dataset.name not in stage1_names:
+                raise ValueError(
+                    f"{path}: dataset {dataset.name!r} is not in stage-1 run {self.inputs.stage1} "
+                    f"({stage1_names}); the ablation needs its lighting code"
+                )
+            own_code = self.model.stage1.lighting_codes[stage1_names.index(dataset.name)].detach().clone()
+            without = dataclasses.replace(self.model, lighting_code=own_code)
+            known = sorted(s.split("/", 1)[1] for s in stage1_subjects if s.split("/", 1)[0] == dataset.name)
+            for subject in known[: self.settings.subjects_per_dataset]:
+                cameras, _ = subject_cameras(path, subject, self.settings.max_views)
+                index = stage1_subjects.index(f"{dataset.name}/{subject}")
+                frame = min(dataset.row(k).frame for k in dataset.select(subjects=subject, patterns="full"))
+                tracked = dataset.meshes().get(make_mesh_key(subject, frame))
+                tracked = (
+                    None if tracked is None else torch.as_tensor(np.asarray(tracked), dtype=torch.float32)
+                )
+                self.inputs_images.setdefault(f"{world_name}/{subject}", self._first_image(path, subject))
+                decoded[f"{world_name}/{subject}"] = self._ablation_entry(
+                    world_name,
+                    subject,
+                    cameras,
+                    decoded_avatar(self.model, index, tracked, {}),
+                    decoded_avatar(without, index, tracked, {}),
+                )
+            for subject in test_subjects(self.inputs, world_name, self.settings.subjects_per_dataset):
+                cameras, _ = subject_cameras(path, subject, self.settings.max_views)
+                fitted[f"{world_name}/{subject}"] = self._ablation_entry(
+                    world_name,
+                    subject,
+                    cameras,
+                    self.fit(world_name, subject, cameras, "two-stage with z_l (OLAT code)"),
+                    self.fit(world_name, subject, cameras, "two-stage own z_l", model=without),
+                )
+        self.tables["table3"] = decoded
+        self.tables["table3_fitted"] = fitted
+
+    def _ablation_entry(
+        self, world_name: str, subject: str, cameras: list[str], with_code, without_code
+    ) -> dict:
+        """A Table-3 entry: both avatars relit under the rig lights and compared with the subject's truth."""
+        cases, source = self.olat_cases(world_name, subject, cameras)
+        return {
+            "source": source,
+            "seen_in_training": self.seen_in_training(world_name, subject),
+            "cameras": cameras,
+            "lights": [c.label for c in cases],
+            "rows": {
+                "with_lighting_code": compare(with_code, cases, self.lpips),
+                "without_lighting_code": compare(without_code, cases, self.lpips),
+            },
+        }
+
+    def _first_image(self, path: Path, subject: str) -> np.ndarray:
+        """(H, W, 3) the subject's first full-on row (the input column of the image grids)."""
+        from relightanyone.format.reader import NormalizedDataset
+
+        dataset = NormalizedDataset(path)
+        _, image, _ = dataset.decoded(sorted(dataset.select(subjects=subject, patterns="full"))[0])
+        return image
+
+    def _stage1_subjects(self) -> list[str]:
+        """``dataset/subject`` of every stage-1 identity code, in code order."""
+        from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
+
+        return list(load_checkpoint(Path(self.inputs.stage1) / CHECKPOINT_NAME)["subjects"])
+
+    def seen_in_training(self, world_name: str, subject: str) -> list[str]:
+        """Runs whose training subjects include this one (then it is not held out; the report says so)."""
+        import json
+
+        from relightanyone.format.reader import NormalizedDataset
+
+        name = f"{NormalizedDataset(self.inputs.datasets[world_name]).name}/{subject}"
+        runs = {
+            "stage 1": self.inputs.stage1,
+            "stage 2": self.inputs.stage2,
+            "single-stage": self.inputs.single_stage,
+        }
+        seen = []
+        for label, run in runs.items():
+            info_path = None if run is None else Path(run) / "run.json"
+            if info_path is not None and info_path.is_file():
+                info = json.loads(info_path.read_text())
+                # A stage-2 run lists every stage-1 subject (its code order) but trains on one dataset.
+                trained_on = info.get("dataset", {}).get("name") if info.get("stage") == "stage2" else None
+                if name in info.get("subjects", []) and trained_on in (None, name.split("/", 1)[0]):
+                    seen.append(label)
+        return seen
+
+    def _stage1_dataset_names(self) -> list[str]:
+        import json
+
+        info = json.loads((Path(self.inputs.stage1) / "run.json").read_text())
+        return [d["name"] for d in info["datasets"]]
+
+    def run(self) -> dict:
+        """All tables; returns the JSON-ready results (per-subject and mean metrics)."""
+        self.table1_and_2()
+        self.table3()
+        for name, table in self.tables.items():
+            entries = {}
+            means: dict[str, dict[str, list[float]]] = {}
+            for key, entry in table.items():
+                summaries = {row: comparison.summary() for row, comparison in entry["rows"].items()}
+                entries[key] = {k: v for k, v in entry.items() if k != "rows"} | {"metrics": summaries}
+                for row, summary in summaries.items():
+                    for metric, value in summary.items():
+                        means.setdefault(row, {}).setdefault(metric, []).append(value)
+            self.results[name] = {
+                "subjects": entries,
+                "mean": {
+                    row: {
+                        m: int(np.sum(v)) if m == "images" else float(np.mean(v)) for m, v in metrics.items()
+                    }
+                    for row, metrics in means.items()
+                },
+            }
+        self.results["light_indices"] = self.light_indices
+        self.results["olat_dataset"] = self.olat_world
+        return self.results

@@ -1,0 +1,1 @@
+"""Fitting unseen subjects: input views, the fitter, the avatar file and its tools, PLY export."""

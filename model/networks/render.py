@@ -1,0 +1,137 @@
+"""Rendering stage-1 Gaussians into cameras, orbit cameras, and display images.
+
+Renders go through :func:`relightanyone.render.rasterize.rasterize` (pure PyTorch / C++ on CPU, gsplat on
+CUDA) with a black background: training and metrics only look at masked pixels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from relightanyone.model.networks.gaussians import Gaussians
+
+
+def render_gaussians(
+    gaussians: Gaussians, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Render sample ``b`` of ``gaussians`` into camera ``b``.
+
+    gaussians: B samples of N Gaussians; K (B, 3, 3), w2c (B, 4, 4).
+    Returns image (B, 3, H, W) linear RGB and alpha (B, 1, H, W), differentiable.
+    """
+    from relightanyone.render.rasterize import rasterize
+
+    batch = gaussians.means.shape[0]
+    if K.shape[0] != batch or w2c.shape[0] != batch:
+        raise ValueError(f"{batch} Gaussian sets but {K.shape[0]} intrinsics and {w2c.shape[0]} poses")
+    images, alphas = [], []
+    for index in range(batch):
+        image, alpha, _ = rasterize(
+            gaussians.means[index],
+            gaussians.quats[index],
+            gaussians.scales[index],
+            gaussians.opacities[index],
+            gaussians.colours[index],
+            w2c[index : index + 1],
+            K[index : index + 1],
+            width,
+            height,
+        )
+        images.append(image)
+        alphas.append(alpha)
+    return torch.cat(images), torch.cat(alphas)
+
+
+def render_cameras(
+    gaussians: Gaussians, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int
+) -> torch.Tensor:
+    """Render one Gaussian set (batch of 1) into C cameras: K (C, 3, 3), w2c (C, 4, 4) -> (C, 3, H, W)."""
+    from relightanyone.render.rasterize import rasterize
+
+    image, _, _ = rasterize(
+        gaussians.means[0],
+        gaussians.quats[0],
+        gaussians.scales[0],
+        gaussians.opacities[0],
+        gaussians.colours[0],
+        w2c,
+        K,
+        width,
+        height,
+    )
+    return image
+
+
+def look_at_w2c(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """(4, 4) OpenCV world-to-camera (x right, y down, z forward) of a camera at ``eye`` looking at ``target``."""
+    forward = target - eye
+    forward = forward / np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right = right / np.linalg.norm(right)
+    down = np.cross(forward, right)
+    rotation = np.stack([right, down, forward])  # rows: camera axes in world coordinates
+    w2c = np.eye(4)
+    w2c[:3, :3] = rotation
+    w2c[:3, 3] = -rotation @ eye
+    return w2c
+
+
+def orbit_cameras(
+    count: int, radius: float, centre: np.ndarray, K: np.ndarray, elevation_deg: float = 10.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` cameras on a horizontal circle around ``centre`` (canonical +y up, +z out of the face),
+    starting in front of the face. Returns K (count, 3, 3) (copies of ``K``) and w2c (count, 4, 4)."""
+    elevation = math.radians(elevation_deg)
+    poses = []
+    for index in range(count):
+        azimuth = 2 * math.pi * index / count
+        offset = radius * np.array(
+            [
+                math.sin(azimuth) * math.cos(elevation),
+                math.sin(elevation),
+                math.cos(azimuth) * math.cos(elevation),
+            ]
+        )
+        poses.append(look_at_w2c(centre + offset, centre, np.array([0.0, 1.0, 0.0])))
+    return np.repeat(np.asarray(K, dtype=np.float64)[None], count, axis=0), np.stack(poses)
+
+
+def to_display(image: torch.Tensor) -> np.ndarray:
+    """Linear (3, H, W) -> sRGB-encoded uint8 (H, W, 3) for PNGs and TensorBoard."""
+    from relightanyone.align.colour import linear_to_srgb
+
+    encoded = linear_to_srgb(image.detach().clamp(0.0, 1.0).float())
+    return (encoded.clamp(0.0, 1.0).permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+
+
+def comparison_strip(target: torch.Tensor, render: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Ground truth | render | error, side by side: (3, H, W) each (mask (1, H, W)) -> (3, H, 3W) linear.
+
+    The error panel is the masked absolute difference, scaled ×4 so small errors stay visible.
+    """
+    error = ((render - target).abs() * mask * 4.0).mean(dim=0, keepdim=True).expand(3, -1, -1)
+    return torch.cat([target * mask, render, error], dim=2)
+
+
+def save_png(path, image: np.ndarray) -> None:
+    """Write an (H, W, 3) uint8 RGB image."""
+    from PIL import Image
+
+    Image.fromarray(image).save(path)
+
+
+def grid(images: list[list[np.ndarray]], gap: int = 2) -> np.ndarray:
+    """Rows of equally sized (H, W, 3) uint8 images -> one (rows·H, cols·W, 3) image with white gaps."""
+    height, width = images[0][0].shape[:2]
+    rows, columns = len(images), max(len(row) for row in images)
+    canvas = np.full((rows * (height + gap) - gap, columns * (width + gap) - gap, 3), 255, np.uint8)
+    for r, row in enumerate(images):
+        for c, image in enumerate(row):
+            canvas[
+                r * (height + gap) : r * (height + gap) + height,
+                c * (width + gap) : c * (width + gap) + width,
+            ] = image
+    return canvas

@@ -1,0 +1,167 @@
+"""Stage-1 objective and image metrics.
+
+L = 10·L1 + 0.2·(1 − SSIM) + 0.4·vertex L2 + 0.01·scale bound + λ_t·‖δt‖², λ_t annealed 1 → 0.001.
+Image terms count masked pixels only; training composites render and target over a random background
+first (:func:`composite_over_background`), so the mask covers the whole crop. Vertex L2 is in mm² (RGCA's
+unit, for which its 0.4 weight was chosen); δt and scales are in texel spacings (see
+:mod:`relightanyone.model.networks.gaussians`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from kornia.metrics import ssim as kornia_ssim
+
+from relightanyone.model.networks.gaussians import MAX_SCALE, MIN_SCALE, Gaussians
+from relightanyone.model.networks.presets import LossWeights
+
+SSIM_WINDOW = 11
+METRES_TO_MM = 1000.0
+
+
+def _check_images(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> None:
+    if render.shape != target.shape or render.ndim != 4:
+        raise ValueError(
+            f"render and target must both be (B, C, H, W); got {tuple(render.shape)}, {tuple(target.shape)}"
+        )
+    if mask.shape != (render.shape[0], 1, *render.shape[2:]):
+        raise ValueError(
+            f"mask must be (B, 1, H, W) = {(render.shape[0], 1, *render.shape[2:])}, got {tuple(mask.shape)}"
+        )
+
+
+def _per_sample_masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """values (B, C, H, W), mask (B, 1, H, W) -> (B,) mean of values over each sample's masked pixels."""
+    weight = mask.expand_as(values)
+    return (values * weight).sum(dim=(1, 2, 3)) / weight.sum(dim=(1, 2, 3)).clamp(min=1.0)
+
+
+def masked_l1(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Per-sample mean absolute error over masked pixels and channels, (B,).
+
+    render, target (B, C, H, W); mask (B, 1, H, W). Per-sample values keep the batch loss a plain mean
+    over samples, so data-parallel gradient averaging equals one process with the whole batch.
+    """
+    _check_images(render, target, mask)
+    return _per_sample_masked_mean((render - target).abs(), mask)
+
+
+def masked_ssim(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Per-sample mean SSIM (11×11 Gaussian window, kornia) over masked pixels, (B,).
+
+    Both images are masked first so the unmodelled background does not enter the windows.
+    Shapes as :func:`masked_l1`.
+    """
+    _check_images(render, target, mask)
+    return _per_sample_masked_mean(kornia_ssim(render * mask, target * mask, SSIM_WINDOW), mask)
+
+
+def composite_over_background(
+    render: torch.Tensor,
+    alpha: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor,
+    background: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Put the render and the masked target over one background colour per sample.
+
+    render, target (B, 3, H, W); alpha, mask (B, 1, H, W) in [0, 1]; background (B, 3).
+    Returns (render + (1 − alpha)·bg, target·mask + bg·(1 − mask)), both (B, 3, H, W).
+
+    Compared over the whole crop, these make coverage part of the image: the head must be opaque
+    inside its mask and empty outside. A loss over masked pixels alone lets a fog of large, faint
+    Gaussians with brightened colours reproduce a flat-lit image; that fog then blurs every relit
+    render, because each pixel mixes the shading of surface points centimetres apart.
+    """
+    bg = background.to(render.dtype)[:, :, None, None]
+    return render + (1.0 - alpha) * bg, target * mask + bg * (1.0 - mask)
+
+
+def masked_psnr(
+    render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, max_value: float = 1.0
+) -> float:
+    """PSNR in dB over masked pixels (images clamped to [0, max_value]). Shapes as :func:`masked_l1`."""
+    _check_images(render, target, mask)
+    weight = mask.expand_as(render)
+    error = ((render.clamp(0, max_value) - target.clamp(0, max_value)) ** 2 * weight).sum()
+    mse = float(error / weight.sum().clamp(min=1.0))
+    return float("inf") if mse == 0 else 10.0 * math.log10(max_value**2 / mse)
+
+
+def vertex_l2(
+    vertices: torch.Tensor, tracked_vertices: torch.Tensor, has_mesh: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Per-sample mean squared vertex distance in mm², (B,). vertices, tracked_vertices (B, V, 3) in metres;
+    has_mesh (B,) 0/1 zeroes samples without a tracked mesh."""
+    if vertices.shape != tracked_vertices.shape:
+        raise ValueError(
+            f"decoded mesh {tuple(vertices.shape)} and tracked mesh {tuple(tracked_vertices.shape)} differ"
+        )
+    per_sample = (((vertices - tracked_vertices) * METRES_TO_MM) ** 2).sum(-1).mean(-1)
+    return per_sample if has_mesh is None else per_sample * has_mesh
+
+
+def scale_bound_loss(scales_preclip: torch.Tensor) -> torch.Tensor:
+    """RGCA-style scale regulariser on unclamped scales (texel spacings), (B, N, 3) -> (B,).
+
+    1/s below MIN_SCALE, (s − MAX_SCALE)² above MAX_SCALE, 0 in between.
+    """
+    below = torch.where(
+        scales_preclip < MIN_SCALE, 1.0 / scales_preclip.clamp(min=1e-6), torch.zeros_like(scales_preclip)
+    )
+    above = torch.where(
+        scales_preclip > MAX_SCALE, (scales_preclip - MAX_SCALE) ** 2, torch.zeros_like(scales_preclip)
+    )
+    return (below + above).mean(dim=(1, 2))
+
+
+def offset_l2(offsets: torch.Tensor) -> torch.Tensor:
+    """Mean ‖δt‖² in texel spacings², offsets (B, N, 3) -> (B,)."""
+    return (offsets**2).sum(-1).mean(-1)
+
+
+def offset_weight(iteration: int, weights: LossWeights, anneal_iterations: int) -> float:
+    """λ_t at ``iteration``: log-linear from weights.offset_start to weights.offset_end over
+    ``anneal_iterations``, then constant."""
+    if anneal_iterations <= 0 or iteration >= anneal_iterations:
+        return weights.offset_end
+    fraction = max(iteration, 0) / anneal_iterations
+    return float(weights.offset_start * (weights.offset_end / weights.offset_start) ** fraction)
+
+
+def stage1_loss(
+    render: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor,
+    vertices: torch.Tensor,
+    tracked_vertices: torch.Tensor,
+    gaussians: Gaussians,
+    weights: LossWeights,
+    offset_lambda: float,
+    has_mesh: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Total stage-1 loss (mean over samples) and its named terms (unweighted batch means, plus ``total``).
+
+    render, target (B, 3, H, W); mask (B, 1, H, W); vertices, tracked_vertices (B, V, 3); has_mesh (B,).
+    """
+    terms = {
+        "l1": masked_l1(render, target, mask),
+        "ssim": 1.0 - masked_ssim(render, target, mask),
+        "geometry": vertex_l2(vertices, tracked_vertices, has_mesh),
+        "scale": scale_bound_loss(gaussians.scales_preclip),
+        "offset": offset_l2(gaussians.offsets),
+    }
+    per_sample = (
+        weights.l1 * terms["l1"]
+        + weights.ssim * terms["ssim"]
+        + weights.geometry * terms["geometry"]
+        + weights.scale * terms["scale"]
+        + offset_lambda * terms["offset"]
+    )
+    total = per_sample.mean()
+    logged = {name: float(value.detach().mean()) for name, value in terms.items()}
+    logged["total"] = float(total.detach())
+    logged["offset_lambda"] = offset_lambda
+    return total, logged

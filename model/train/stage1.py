@@ -1,0 +1,338 @@
+"""Stage-1 training: the multi-identity full-on Gaussian head model over several datasets.
+
+``train_stage1(Stage1Config)`` trains into a run folder::
+
+    RUN/run.json          what was trained: preset, datasets, subjects, seed, processes
+    RUN/template.obj      the template mesh the UV binding was built from (renders need it)
+    RUN/checkpoint.pt     model, optimizer, iteration, random states (atomic; resumes bit-exactly)
+    RUN/metrics.json      held-out PSNR/SSIM per dataset and seconds per iteration
+    RUN/tensorboard/      scalars and ground truth | render | error strips
+
+Data-parallel: under ``torchrun`` (``WORLD_SIZE`` > 1) every process draws the same global batch and
+trains on its slice; gradients are averaged with one all-reduce per step (gloo on CPU, NCCL on GPU), so
+all processes keep identical weights. Only rank 0 writes files.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+
+from relightanyone.model.networks.gaussians import TexelBinding
+from relightanyone.model.networks.presets import Stage1Preset
+from relightanyone.model.networks.render import comparison_strip, render_gaussians, to_display
+from relightanyone.model.networks.stage1 import Stage1Model
+from relightanyone.model.train.checkpoint import (
+    CHECKPOINT_NAME,
+    capture_rng_state,
+    load_checkpoint,
+    restore_rng_state,
+    save_checkpoint,
+)
+from relightanyone.model.train.data import Stage1Data
+from relightanyone.model.train.held_out import evaluate_held_out
+from relightanyone.model.train.losses import composite_over_background, offset_weight, stage1_loss
+from relightanyone.model.train.memory import estimate_training_memory, format_memory
+from relightanyone.model.train.sampling import background_colours, balanced_batch
+
+RUN_INFO_NAME = "run.json"
+METRICS_NAME = "metrics.json"
+TEMPLATE_NAME = "template.obj"
+# Fields that shape the network: a checkpoint can only resume a run that agrees on all of them.
+ARCHITECTURE_FIELDS = ("uv_size", "z_id_dim", "z_l_dim", "start_channels", "min_channels", "mesh_hidden")
+
+
+@dataclass
+class Stage1Config:
+    """One stage-1 run.
+
+    warmup: the colour-alignment warm-up (lighting code off, a 3×3 learned for each ``uncalibrated``
+    dataset, raw dataset colours); otherwise normal training with z_l and learned matrices applied on load.
+    """
+
+    data: list[Path]
+    out: Path
+    preset: Stage1Preset
+    seed: int = 0
+    uncalibrated: tuple[str, ...] = ()
+    warmup: bool = False
+    resume: bool = True
+    progress: bool = True
+    evaluate: bool = True
+    eval_views_per_dataset: int | None = None
+    extra_info: dict = field(default_factory=dict)
+
+
+@dataclass
+class ProcessGroup:
+    rank: int
+    world_size: int
+    device: torch.device
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def setup_process_group() -> ProcessGroup:
+    """Join the torchrun process group when ``WORLD_SIZE`` > 1 (gloo on CPU, NCCL with CUDA)."""
+    world_size = int(os.environ.get("WORLD_SIZE", "1"))
+    use_cuda = torch.cuda.is_available()
+    if world_size > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if use_cuda else "gloo")
+    rank = dist.get_rank() if world_size > 1 else 0
+    if use_cuda:
+        local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+        torch.cuda.set_device(local_rank)
+        device = torch.device("cuda", local_rank)
+    else:
+        device = torch.device("cpu")
+    return ProcessGroup(rank=rank, world_size=world_size, device=device)
+
+
+def build_model(
+    preset: Stage1Preset, data: Stage1Data, uncalibrated: tuple[str, ...], template_path: Path
+) -> Stage1Model:
+    """The stage-1 model for ``data``'s subjects and datasets, bound to the template at the preset's UV size."""
+    from relightanyone.render.mesh import load_obj
+    from relightanyone.render.uv_binding import UVBinding
+
+    unknown = sorted(set(uncalibrated) - set(data.names))
+    if unknown:
+        raise ValueError(f"--uncalibrated names {unknown} are not among the datasets {data.names}")
+    mesh = load_obj(template_path)
+    uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, preset.uv_size)
+    binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
+    flags = torch.tensor([name in uncalibrated for name in data.names])
+    return Stage1Model(
+        preset, torch.from_numpy(mesh.vertices).float(), binding, len(data.subjects), len(data.names), flags
+    )
+
+
+def average_gradients(model: torch.nn.Module, world_size: int) -> None:
+    """All-reduce every gradient (missing ones count as zero) and divide by the number of processes."""
+    parameters = [p for p in model.parameters() if p.requires_grad]
+    for parameter in parameters:
+        if parameter.grad is None:
+            parameter.grad = torch.zeros_like(parameter)
+    flat = torch.cat([p.grad.reshape(-1) for p in parameters])
+    dist.all_reduce(flat)
+    flat /= world_size
+    offset = 0
+    for parameter in parameters:
+        count = parameter.numel()
+        parameter.grad.copy_(flat[offset : offset + count].view_as(parameter))
+        offset += count
+
+
+def weights_checksum(model: torch.nn.Module) -> float:
+    """Sum of all parameters in float64: identical across processes when they are in sync."""
+    return float(sum(p.detach().double().sum() for p in model.parameters()))
+
+
+def _check_resumable(
+    checkpoint: dict, preset: Stage1Preset, data: Stage1Data, config: Stage1Config, path: Path
+) -> None:
+    saved = checkpoint["preset"]
+    differing = [name for name in ARCHITECTURE_FIELDS if saved[name] != getattr(preset, name)]
+    if differing or checkpoint["subjects"] != data.subjects or checkpoint["datasets"] != data.names:
+        raise ValueError(
+            f"{path}: the checkpoint was trained with other settings or data "
+            f"({'preset fields ' + ', '.join(differing) if differing else 'subjects/datasets differ'}); "
+            "use another --out folder or --no-resume"
+        )
+    if checkpoint["warmup"] != config.warmup or checkpoint["seed"] != config.seed:
+        raise ValueError(
+            f"{path}: the checkpoint is from a run with another seed or warm-up setting; use another --out"
+        )
+
+
+def _write_json(path: Path, payload: dict) -> None:
+    temporary = path.with_name(f".{path.name}.tmp")
+    temporary.write_text(json.dumps(payload, indent=2, sort_keys=True) + "\n")
+    os.replace(temporary, path)
+
+
+def train_stage1(config: Stage1Config) -> dict:
+    """Train (or resume) a stage-1 run; returns the metrics written to ``RUN/metrics.json``."""
+    from tqdm import tqdm
+
+    group = setup_process_group()
+    preset = config.preset
+    out = Path(config.out)
+    data = Stage1Data(config.data, preset.held_out_cameras, apply_learned_colour=not config.warmup)
+    torch.manual_seed(config.seed)
+    model = build_model(preset, data, config.uncalibrated, data.template_path).to(group.device)
+    if group.world_size > 1:  # every process starts from rank 0's weights
+        for tensor in list(model.parameters()) + list(model.buffers()):
+            dist.broadcast(tensor.data, src=0)
+    optimizer = torch.optim.Adam(model.parameters(), lr=preset.learning_rate)
+    start = 0
+    checkpoint_path = out / CHECKPOINT_NAME
+    if config.resume and checkpoint_path.is_file():
+        checkpoint = load_checkpoint(checkpoint_path)
+        _check_resumable(checkpoint, preset, data, config, checkpoint_path)
+        model.load_state_dict(checkpoint["model"])
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        restore_rng_state(checkpoint["rng"])
+        start = int(checkpoint["iteration"])
+
+    if group.is_main:
+        out.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(data.template_path, out / TEMPLATE_NAME)
+        _write_json(out / RUN_INFO_NAME, _run_info(config, data, group))
+        parameter_count = sum(p.numel() for p in model.parameters())
+        print(
+            f"stage 1{' colour warm-up' if config.warmup else ''}: {len(data.subjects)} subjects in "
+            f"{len(data.names)} datasets, {model.gaussian_count} Gaussians per subject, "
+            f"{parameter_count / 1e6:.2f} M parameters, {group.world_size} process(es)"
+        )
+        print(format_memory(estimate_training_memory(preset, parameter_count, model.gaussian_count)))
+        if start:
+            print(f"resuming {checkpoint_path} at iteration {start}")
+
+    writer = None
+    if group.is_main:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(out / "tensorboard"), purge_step=start)
+    use_lighting = not config.warmup
+    global_batch = preset.batch_size * group.world_size
+    first_sample = group.rank * preset.batch_size
+    progress = tqdm(
+        total=preset.iterations,
+        initial=start,
+        disable=not (config.progress and group.is_main),
+        desc="stage1 warm-up" if config.warmup else "stage1",
+        unit="it",
+        dynamic_ncols=True,
+    )
+    step_seconds = 0.0
+    steps = 0
+    for iteration in range(start, preset.iterations):
+        began = time.perf_counter()
+        pairs = balanced_batch(data.views_per_dataset, global_batch, config.seed, iteration)
+        pairs = pairs[first_sample : first_sample + preset.batch_size]
+        views = [data.train_views[d][v] for d, v in pairs]
+        batch = {
+            k: v.to(group.device)
+            for k, v in data.load_batch(views, preset.crop_size, config.seed, iteration, first_sample).items()
+        }
+        vertices, gaussians = model(batch["subject_index"], batch["dataset_index"], use_lighting=use_lighting)
+        render, alpha = render_gaussians(
+            gaussians, batch["K"], batch["w2c"], preset.crop_size, preset.crop_size
+        )
+        if config.warmup:
+            render = model.dataset_colour(render, batch["dataset_index"])
+        background = background_colours(config.seed, iteration, first_sample, len(views))
+        render_bg, target_bg = composite_over_background(
+            render, alpha, batch["image"], batch["mask"], torch.from_numpy(background).to(group.device)
+        )
+        loss, terms = stage1_loss(
+            render_bg,
+            target_bg,
+            torch.ones_like(batch["mask"]),
+            vertices,
+            batch["tracked"],
+            gaussians,
+            preset.loss,
+            offset_weight(iteration, preset.loss, preset.offset_anneal_iterations),
+            batch["has_mesh"],
+        )
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if group.world_size > 1:
+            average_gradients(model, group.world_size)
+        optimizer.step()
+        step_seconds += time.perf_counter() - began
+        steps += 1
+        done = iteration + 1
+        progress.update(1)
+        progress.set_postfix({k: f"{terms[k]:.4g}" for k in ("total", "l1", "ssim", "geometry")})
+        if writer is not None:
+            if done % preset.log_every == 0 or done == preset.iterations:
+                for name, value in terms.items():
+                    writer.add_scalar(f"loss/{name}", value, done)
+                writer.add_scalar("time/seconds_per_iteration", step_seconds / steps, done)
+            if done % preset.image_every == 0 or done == preset.iterations:
+                strip = comparison_strip(batch["image"][0], render[0].detach(), batch["mask"][0])
+                writer.add_image("train/truth|render|error", to_display(strip), done, dataformats="HWC")
+        if group.is_main and (done % preset.checkpoint_every == 0 or done == preset.iterations):
+            save_checkpoint(
+                checkpoint_path, _checkpoint_payload(model, optimizer, done, preset, data, config)
+            )
+    progress.close()
+
+    metrics = {
+        "iterations": preset.iterations,
+        "seconds_per_iteration": step_seconds / steps if steps else None,
+    }
+    if group.world_size > 1:
+        checksums = [None] * group.world_size
+        dist.all_gather_object(checksums, weights_checksum(model))
+        metrics["processes"] = group.world_size
+        metrics["processes_in_sync"] = len(set(checksums)) == 1
+    if group.is_main:
+        if config.evaluate:
+            metrics["held_out"] = evaluate_held_out(
+                model, data, use_lighting, max_views_per_dataset=config.eval_views_per_dataset
+            )
+            if config.warmup and config.uncalibrated:
+                metrics["held_out_with_colour_matrix"] = evaluate_held_out(
+                    model,
+                    data,
+                    use_lighting,
+                    dataset_colour=True,
+                    max_views_per_dataset=config.eval_views_per_dataset,
+                )
+        if config.warmup:
+            metrics["colour_matrices"] = {
+                name: model.colour_matrices[i].detach().cpu().tolist()
+                for i, name in enumerate(data.names)
+                if name in config.uncalibrated
+            }
+        _write_json(out / METRICS_NAME, metrics)
+        writer.close()
+    if group.world_size > 1:
+        dist.barrier()
+    return metrics
+
+
+def _checkpoint_payload(
+    model, optimizer, iteration: int, preset: Stage1Preset, data: Stage1Data, config: Stage1Config
+) -> dict:
+    return {
+        "iteration": iteration,
+        "model": model.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "rng": capture_rng_state(),
+        "preset": preset.to_json(),
+        "subjects": data.subjects,
+        "datasets": data.names,
+        "uncalibrated": list(config.uncalibrated),
+        "warmup": config.warmup,
+        "seed": config.seed,
+    }
+
+
+def _run_info(config: Stage1Config, data: Stage1Data, group: ProcessGroup) -> dict:
+    return {
+        "stage": "stage1-warmup" if config.warmup else "stage1",
+        "preset": config.preset.to_json(),
+        "datasets": [
+            {"name": n, "path": str(d.resolve())} for n, d in zip(data.names, data.dirs, strict=True)
+        ],
+        "subjects": data.subjects,
+        "uncalibrated": list(config.uncalibrated),
+        "seed": config.seed,
+        "processes": group.world_size,
+        "template": TEMPLATE_NAME,
+        **config.extra_info,
+    }

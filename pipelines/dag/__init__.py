@@ -1,0 +1,1 @@
+"""The staged DAG runner behind ``relightanyone run``: pipeline files, fingerprints, stage records, execution."""

@@ -1,0 +1,150 @@
+"""The ``relightanyone report`` command (registered by the pipelines layer as ``report_command``).
+
+Heavy imports stay inside the command so that ``relightanyone --help`` stays instant.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+def parse_titled(value: str, option: str) -> tuple[str, Path]:
+    """``"Title=path"`` -> (title, path); a bare existing path takes its file name (without suffix) as title."""
+    if Path(value).exists() or "=" not in value:
+        path = Path(value)
+        return path.stem or path.name or value, path
+    title, path = value.split("=", 1)
+    if not title.strip() or not path.strip():
+        raise click.BadParameter(f"{value!r}: expected TITLE=PATH", param_hint=option)
+    return title.strip(), Path(path.strip())
+
+
+@click.command("report")
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Folder to write index.html and assets/ into (other files there are left alone).",
+)
+@click.option(
+    "--datasets",
+    multiple=True,
+    type=click.Path(path_type=Path),
+    help="Folder of normalized datasets (one per sub-folder) or one dataset folder (repeatable).",
+)
+@click.option(
+    "--image",
+    "images",
+    multiple=True,
+    metavar="TITLE=PATH",
+    help="A picture to show (contact sheet, world preview, ...); PNG/JPEG/WebP/GIF/AVIF, or EXR/HDR "
+    "tone-mapped to sRGB (repeatable).",
+)
+@click.option(
+    "--lighting-grid",
+    type=click.Path(path_type=Path),
+    help="The lighting-alignment grid of a stage-1 run (lighting_grid.png from render-stage1).",
+)
+@click.option(
+    "--expanded",
+    multiple=True,
+    type=click.Path(path_type=Path),
+    help="An expanded (synthetic-olat) dataset: one OLAT contact sheet per subject (repeatable).",
+)
+@click.option(
+    "--strip",
+    "strips",
+    multiple=True,
+    metavar="TITLE=PATH",
+    help="An environment-map relighting strip: a PNG sheet, an animated WebP/GIF, or a folder of them "
+    "(repeatable).",
+)
+@click.option(
+    "--evaluation",
+    type=click.Path(path_type=Path),
+    help="Evaluation folder with report.md, evaluation.json and grids/*.png.",
+)
+@click.option(
+    "--metrics",
+    multiple=True,
+    metavar="TITLE=PATH",
+    help="A JSON file of stage metrics (e.g. a stage-1 run's metrics.json) shown as tables (repeatable).",
+)
+@click.option("--title", default="relightanyone report", show_default=True, help="Page title.")
+@click.option(
+    "--max-subjects",
+    type=click.IntRange(min=1),
+    default=24,
+    show_default=True,
+    help="Most subjects per dataset drawn in subject and OLAT sheets.",
+)
+@click.option("--olat-camera", help="Camera of the OLAT sheets (default: the middle camera of each subject).")
+@click.option(
+    "--no-subject-sheets", is_flag=True, help="Skip the one-view-per-subject sheet of each dataset."
+)
+@click.option(
+    "--check",
+    is_flag=True,
+    help="Open the page in headless Chromium afterwards and fail unless every image loads.",
+)
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def report_command(
+    out: Path,
+    datasets: tuple[Path, ...],
+    images: tuple[str, ...],
+    lighting_grid: Path | None,
+    expanded: tuple[Path, ...],
+    strips: tuple[str, ...],
+    evaluation: Path | None,
+    metrics: tuple[str, ...],
+    title: str,
+    max_subjects: int,
+    olat_camera: str | None,
+    no_subject_sheets: bool,
+    check: bool,
+    quiet: bool,
+) -> None:
+    """Write one self-contained HTML report (OUT/index.html + OUT/assets/) of datasets, pictures,
+    OLAT sheets of expanded datasets, relighting strips, the evaluation and stage metrics.
+
+    Every input is optional: what is missing shows as a "not produced" note in the page and a warning
+    here. The folder uses relative links only, so it can be zipped and opened anywhere.
+    """
+    import warnings
+
+    from relightanyone.pipelines.report.build import ReportInputs, ReportWarning, build_report
+
+    inputs = ReportInputs(
+        datasets=list(datasets),
+        pictures=[parse_titled(v, "--image") for v in images],
+        lighting_grid=lighting_grid,
+        expanded=list(expanded),
+        strips=[parse_titled(v, "--strip") for v in strips],
+        evaluation=evaluation,
+        metrics=[parse_titled(v, "--metrics") for v in metrics],
+        title=title,
+        subject_sheets=not no_subject_sheets,
+        max_subjects=max_subjects,
+        olat_camera=olat_camera,
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ReportWarning)  # echoed below, once each
+        result = build_report(inputs, out, progress=not quiet)
+    for message in result.warnings:
+        click.secho(f"warning: {message}", fg="yellow", err=True)
+    click.echo(f"wrote {result.index} ({result.images} image(s), {len(result.warnings)} warning(s))")
+    if check:
+        from relightanyone.pipelines.report.browser import BrowserUnavailable, check_in_browser
+
+        try:
+            seen = check_in_browser(result.index)
+        except (BrowserUnavailable, RuntimeError) as error:
+            raise click.ClickException(str(error)) from None
+        if not seen.ok:
+            raise click.ClickException(
+                f"{result.index}: {seen.loaded} of {seen.total} image(s) loaded in Chromium; missing: "
+                f"{', '.join(seen.missing)}"
+            )
+        click.echo(f"checked in Chromium: all {seen.total} image(s) load")
