@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relightanyone.align.colour import read_learned_colour_matrix
 from relightanyone.evaluation.truth import (
     NativeCamera,
     WorldAnswers,
@@ -27,6 +28,9 @@ from relightanyone.evaluation.truth import (
     warp_native_to_row,
     world_to_normalized,
 )
+from relightanyone.format.codecs import decode_mask
+from relightanyone.format.reader import NormalizedDataset
+from relightanyone.render.camera import Cameras
 from relightanyone.render.lights import PointLights
 
 ANSWER_MASK_THRESHOLD = 1e-4  # linear radiance summed over the answer lights; the background is exactly 0
@@ -60,7 +64,6 @@ class LightCase:
 
 def view_cameras(views: list[EvalView]):
     """A :class:`~relightanyone.render.camera.Cameras` batch of the views (one image size)."""
-    from relightanyone.render.camera import Cameras
 
     sizes = {(v.width, v.height) for v in views}
     if len(sizes) != 1:
@@ -80,7 +83,6 @@ def stack_truth(views: list[EvalView]) -> tuple[torch.Tensor, torch.Tensor]:
 
 def rig_patterns(dataset_dir: Path) -> dict[int, str]:
     """Rig light index -> its OLAT pattern name, from the dataset's lights.arrow."""
-    from relightanyone.format.reader import NormalizedDataset
 
     return {int(row["index"]): str(row["pattern"]) for row in NormalizedDataset(dataset_dir).lights()}
 
@@ -89,8 +91,6 @@ def row_olat_cases(
     dataset_dir: Path, subject: str, rig: PointLights, light_indices: list[int], cameras: list[str]
 ) -> list[LightCase]:
     """OLAT ground truth from a subject's own OLAT rows (colour matrix applied as for fitting)."""
-    from relightanyone.align.colour import read_learned_colour_matrix
-    from relightanyone.format.reader import NormalizedDataset
 
     dataset = NormalizedDataset(dataset_dir)
     matrix = read_learned_colour_matrix(dataset.path)
@@ -118,7 +118,6 @@ def row_olat_cases(
 
 
 def has_olat_rows(dataset_dir: Path, subject: str) -> bool:
-    from relightanyone.format.reader import NormalizedDataset
 
     dataset = NormalizedDataset(dataset_dir)
     return any(p.startswith("olat-") for p in dataset.patterns) and bool(
@@ -182,8 +181,6 @@ def answer_frame(
     answers: WorldAnswers, world_dataset: str, dataset_dir: Path, subject: str, cameras: list[str] | None
 ) -> AnswerFrame:
     """Tie a test subject's first full-on frame to the answers (cameras default to all of them)."""
-    from relightanyone.format.codecs import decode_mask
-    from relightanyone.format.reader import NormalizedDataset
 
     dataset = NormalizedDataset(dataset_dir)
     native = answers.cameras(world_dataset)
@@ -338,7 +335,6 @@ def expected_olat_over_full_on(dataset_dir: Path) -> float:
 
     1 when the rig records no separate full-on intensities (``full_on_intensity_rgb`` null).
     """
-    from relightanyone.format.reader import NormalizedDataset
 
     rows = NormalizedDataset(dataset_dir).lights()
     if not rows or any(row.get("full_on_intensity_rgb") is None for row in rows):
@@ -354,7 +350,6 @@ def olat_sum_over_full_on(dataset_dir: Path, subject: str, cameras: list[str]) -
     A full-on frame is every rig light at once, so in one radiometric unit it equals the sum of the OLAT
     frames (up to the small head motion between frames). None when no camera has all patterns.
     """
-    from relightanyone.format.reader import NormalizedDataset
 
     dataset = NormalizedDataset(dataset_dir)
     patterns = rig_patterns(dataset_dir)

@@ -15,10 +15,12 @@ from pathlib import Path
 
 import torch
 
+from relightanyone.format.reader import NormalizedDataset
+from relightanyone.model.fit.avatar import check_pinhole_cameras
 from relightanyone.model.fit.fitter import FitSettings, Fitter
 from relightanyone.model.fit.views import FitViews
-from relightanyone.model.networks.gaussians import Gaussians, assemble_gaussians, gather_texels
-from relightanyone.model.networks.presets import Stage2Preset
+from relightanyone.model.networks.gaussians import Gaussians, TexelBinding, assemble_gaussians, gather_texels
+from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
 from relightanyone.model.networks.reflectance import (
     RelightParams,
     activate_relight_params,
@@ -27,7 +29,12 @@ from relightanyone.model.networks.reflectance import (
 )
 from relightanyone.model.networks.single_stage import SingleStageModel
 from relightanyone.model.networks.stage2 import texel_mesh_normals, view_directions
-from relightanyone.render.lights import PointLights
+from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
+from relightanyone.model.train.stage2 import TEMPLATE_NAME
+from relightanyone.render.lights import PointLights, full_on_rig_from_table, olat_rig_from_table
+from relightanyone.render.mesh import load_obj
+from relightanyone.render.rasterize import rasterize
+from relightanyone.render.uv_binding import UVBinding
 
 
 @dataclass
@@ -45,14 +52,6 @@ class SingleStageRun:
 
 def load_single_stage_run(run: str | Path) -> SingleStageRun:
     """Load a ``relightanyone train stage2 --single-stage`` run folder."""
-    from relightanyone.format.reader import NormalizedDataset
-    from relightanyone.model.networks.gaussians import TexelBinding
-    from relightanyone.model.networks.presets import Stage1Preset
-    from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
-    from relightanyone.model.train.stage2 import TEMPLATE_NAME
-    from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
-    from relightanyone.render.mesh import load_obj
-    from relightanyone.render.uv_binding import UVBinding
 
     run = Path(run)
     checkpoint_path = run / CHECKPOINT_NAME
@@ -143,8 +142,6 @@ class SingleStageAvatar:
     @torch.no_grad()
     def relight(self, cameras, lighting: PointLights, background: torch.Tensor | None = None) -> torch.Tensor:
         """Render into cameras (one size, no distortion) under point lights -> (C, 3, H, W) linear RGB."""
-        from relightanyone.model.fit.avatar import check_pinhole_cameras
-        from relightanyone.render.rasterize import rasterize
 
         if not isinstance(lighting, PointLights):
             raise TypeError("the single-stage baseline is evaluated under point lights only")

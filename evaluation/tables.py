@@ -38,7 +38,14 @@ from relightanyone.evaluation.cases import (
     view_cameras,
 )
 from relightanyone.evaluation.metrics import LpipsMetric, image_metrics, lpips_status
+from relightanyone.evaluation.single_stage import SingleStageFitter, load_single_stage_run
 from relightanyone.evaluation.truth import WorldAnswers
+from relightanyone.format.reader import NormalizedDataset
+from relightanyone.format.schema import make_mesh_key
+from relightanyone.model.fit.avatar import check_pinhole_cameras, decoded_avatar, relight_views
+from relightanyone.model.fit.fitter import FitSettings, Fitter, load_relightable_model
+from relightanyone.model.fit.views import load_fit_views
+from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from relightanyone.render.lights import PointLights
 
 # true_image(dataset, subject, camera, light) -> (image (H, W, 3), mask (H, W)) in the row's geometry.
@@ -103,7 +110,6 @@ def evenly_spread(count: int, limit: int | None) -> list[int]:
 
 def subject_cameras(dataset_dir: Path, subject: str, limit: int | None) -> tuple[list[str], str]:
     """(cameras of the first full-on frame, evenly limited; the most frontal of them: centre nearest +z)."""
-    from relightanyone.format.reader import NormalizedDataset
 
     dataset = NormalizedDataset(dataset_dir)
     rows = [dataset.row(k) for k in dataset.select(subjects=subject, patterns="full")]
@@ -122,7 +128,6 @@ def subject_cameras(dataset_dir: Path, subject: str, limit: int | None) -> tuple
 
 def test_subjects(inputs: EvaluationInputs, world_name: str, limit: int | None) -> list[str]:
     """Held-out subjects: the world's splits when answers are given, else the rows' "test" split."""
-    from relightanyone.format.reader import NormalizedDataset
 
     dataset = NormalizedDataset(inputs.datasets[world_name])
     if inputs.answers is not None and world_name in inputs.answers.splits:
@@ -148,7 +153,6 @@ def render_point_lights(avatar, cameras, lights: PointLights) -> torch.Tensor:
 
 def render_lightings(avatar, cameras, lightings: list[PointLights]) -> torch.Tensor:
     """The avatar in ``cameras`` under each of P light sets -> (P, V, 3, H, W), all in one pass."""
-    from relightanyone.model.fit.avatar import check_pinhole_cameras, relight_views
 
     width, height = check_pinhole_cameras(cameras)
     return relight_views(
@@ -210,15 +214,12 @@ class Evaluation:
     """Runs the three tables; ``results`` is the JSON-ready summary, ``grids`` the example images."""
 
     def __init__(self, inputs: EvaluationInputs, settings: EvaluationSettings) -> None:
-        from relightanyone.model.fit.fitter import load_relightable_model
 
         self.inputs = inputs
         self.settings = settings
         self.model = load_relightable_model(inputs.stage1, inputs.stage2)
         self.single = None
         if inputs.single_stage is not None:
-            from relightanyone.evaluation.single_stage import load_single_stage_run
-
             self.single = load_single_stage_run(inputs.single_stage)
         available, reason = lpips_status()
         self.lpips = LpipsMetric() if available else None
@@ -231,7 +232,6 @@ class Evaluation:
         self.inputs_images: dict[str, np.ndarray] = {}
 
     def _olat_world_name(self) -> str:
-        from relightanyone.format.reader import NormalizedDataset
 
         for world_name, path in self.inputs.datasets.items():
             if NormalizedDataset(path).name == self.model.olat_dataset:
@@ -243,7 +243,6 @@ class Evaluation:
 
     # -- fitting ---------------------------------------------------------------------------------------
     def fit_settings(self):
-        from relightanyone.model.fit.fitter import FitSettings
 
         return FitSettings(
             inversion_iterations=self.settings.inversion_iterations,
@@ -255,16 +254,12 @@ class Evaluation:
 
     def fit(self, world_name: str, subject: str, cameras: list[str], label: str, model=None, single=False):
         """Fit a subject's full-on frame in ``cameras``; returns the avatar (timed under ``label``)."""
-        from relightanyone.model.fit.fitter import Fitter
-        from relightanyone.model.fit.views import load_fit_views
 
         views = load_fit_views(self.inputs.datasets[world_name], subject, cameras=cameras)
         self.inputs_images.setdefault(f"{world_name}/{subject}", views.images[0].permute(1, 2, 0).numpy())
         torch.manual_seed(self.settings.seed)
         start = time.perf_counter()
         if single:
-            from relightanyone.evaluation.single_stage import SingleStageFitter
-
             fitter = SingleStageFitter(self.single, views, self.fit_settings())
         else:
             fitter = Fitter(model or self.model, views, self.fit_settings())
@@ -298,7 +293,6 @@ class Evaluation:
         raise ValueError(f"no OLAT truth for {world_name}/{subject}: pass the world (--world)")
 
     def _row_views(self, world_name: str, subject: str, cameras: list[str]) -> list[EvalView]:
-        from relightanyone.format.reader import NormalizedDataset
 
         dataset = NormalizedDataset(self.inputs.datasets[world_name])
         rows = [dataset.row(k) for k in dataset.select(subjects=subject, patterns="full")]
@@ -404,9 +398,6 @@ class Evaluation:
         expansion renders), so nothing can absorb the code's effect. ``table3_fitted``: held-out subjects
         fitted on their full-on frame; fitting also estimates the scene lighting and finetunes stage 1.
         """
-        from relightanyone.format.reader import NormalizedDataset
-        from relightanyone.format.schema import make_mesh_key
-        from relightanyone.model.fit.avatar import decoded_avatar
 
         stage1_names = self._stage1_dataset_names()
         stage1_subjects = self._stage1_subjects()
@@ -469,7 +460,6 @@ class Evaluation:
 
     def _first_image(self, path: Path, subject: str) -> np.ndarray:
         """(H, W, 3) the subject's first full-on row (the input column of the image grids)."""
-        from relightanyone.format.reader import NormalizedDataset
 
         dataset = NormalizedDataset(path)
         _, image, _ = dataset.decoded(sorted(dataset.select(subjects=subject, patterns="full"))[0])
@@ -477,15 +467,12 @@ class Evaluation:
 
     def _stage1_subjects(self) -> list[str]:
         """``dataset/subject`` of every stage-1 identity code, in code order."""
-        from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 
         return list(load_checkpoint(Path(self.inputs.stage1) / CHECKPOINT_NAME)["subjects"])
 
     def seen_in_training(self, world_name: str, subject: str) -> list[str]:
         """Runs whose training subjects include this one (then it is not held out; the report says so)."""
         import json
-
-        from relightanyone.format.reader import NormalizedDataset
 
         name = f"{NormalizedDataset(self.inputs.datasets[world_name]).name}/{subject}"
         runs = {

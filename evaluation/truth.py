@@ -23,6 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.model.fit.views import scale_intrinsics
+from relightanyone.render.envmap import load_envmap
+from relightanyone.synth.world import render_subject_olat
+
 
 @dataclass(frozen=True)
 class NativeCamera:
@@ -139,8 +143,6 @@ class WorldAnswers:
             return read_answer_image(path)
         key = (dataset, subject, camera)
         if key not in self._rendered:
-            from relightanyone.synth.world import render_subject_olat
-
             self._rendered[key] = render_subject_olat(self.world, dataset, subject, [camera])[camera]
         return self._rendered[key][light]
 
@@ -150,7 +152,6 @@ class WorldAnswers:
 
 def read_answer_image(path: Path) -> np.ndarray:
     """(H, W, 3) float32 linear RGB of an answer EXR."""
-    from relightanyone.render.envmap import load_envmap
 
     if not Path(path).is_file():
         raise FileNotFoundError(f"{path}: answer image missing (was the world generated with answers?)")
@@ -174,8 +175,6 @@ def warp_native_to_row(
     the row's own pixels look up the native image directly. Pixels outside the native image are 0.
     """
     import cv2
-
-    from relightanyone.model.fit.views import scale_intrinsics
 
     image = np.asarray(image, dtype=np.float32)
     scale = float(K_native[0, 0]) / float(K_row[0, 0])

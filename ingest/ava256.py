@@ -39,6 +39,13 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
+from relightanyone.align.geometry import fold_head_pose
+from relightanyone.ingest.calibration import (
+    AVA_FULL_SENSOR,
+    CalibrationError,
+    downsample_factor,
+    read_krt_json,
+)
 from relightanyone.ingest.records import (
     AdapterOptions,
     ColourCalibration,
@@ -63,7 +70,6 @@ HEAD_POSE_ZIP = "decoder/head_pose/head_pose.zip"
 IMAGE_DIR = "decoder/image"
 NEUTRAL_SEGMENT = "EXP_neutral_peak"
 CODEC = "avif-linear"
-FACTOR_TOLERANCE = 0.35  # the principal-point-implied downsample factor must be this close to an integer
 
 
 def capture_folders(src: Path) -> list[Path]:
@@ -164,28 +170,6 @@ def read_head_poses(path: Path, frames: list[int]) -> tuple[dict[int, np.ndarray
     return poses, problems
 
 
-def downsample_factor(K_sensor: np.ndarray, image_size: tuple[int, int], sensor_size: tuple[int, int]) -> int:
-    """Integer factor between the calibration's sensor and the stored images.
-
-    K_sensor: (B, 3, 3) the rig's intrinsics in sensor pixels; image_size, sensor_size: (width, height).
-    The exact sensor match wins; otherwise the factor is read from the median principal point, which a
-    sensor's calibration places near its centre. Raises ValueError when neither gives an integer.
-    """
-    width, height = image_size
-    for factor in range(1, 65):
-        if (width * factor, height * factor) == tuple(sensor_size):
-            return factor
-    centre = np.median(K_sensor[:, :2, 2], axis=0)
-    implied = (2.0 * centre + 1.0) / np.array([width, height])  # sensor size / image size per axis
-    factor = int(round(float(implied.mean())))
-    if factor < 1 or abs(implied.mean() - factor) > FACTOR_TOLERANCE or np.abs(implied - factor).max() > 0.5:
-        raise ValueError(
-            f"images are {width}x{height}, which is no integer downscale of the {sensor_size[0]}x{sensor_size[1]} sensor, "
-            f"and the principal points imply factors {implied.round(2).tolist()}"
-        )
-    return factor
-
-
 def _safe_member(name: str) -> bool:
     path = PurePosixPath(name)
     return not path.is_absolute() and ".." not in path.parts and "\\" not in name
@@ -217,9 +201,6 @@ def _scan_camera_zip(path: Path) -> tuple[dict[int, str], tuple[int, int] | None
 def _plan_capture(capture: Path, root: Path, options: AdapterOptions) -> SubjectPlan:
     """Views and refusals of one capture folder."""
     import torch
-
-    from relightanyone.align.geometry import fold_head_pose
-    from relightanyone.ingest.calibration import AVA_FULL_SENSOR, CalibrationError, read_krt_json
 
     subject = subject_of(capture)
     plan = SubjectPlan(subject=subject, split=options.split_of(subject), views=[])

@@ -22,6 +22,8 @@ from relightanyone.render.camera import Cameras
 AVA_FULL_SENSOR = (2668, 4096)
 # Full-resolution NeRSemble frames (width, height).
 NERSEMBLE_FULL_SENSOR = (2200, 3208)
+# The principal-point-implied downsample factor must be this close to an integer.
+FACTOR_TOLERANCE = 0.35
 # Metres per unit for the length units a calibration file may use.
 UNIT_TO_METRES = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
 # Rotations stored in text with ~7 significant digits are orthonormal to ~1e-6; anything worse is corrupt.
@@ -422,3 +424,25 @@ def _colmap_intrinsics(model: str, p: np.ndarray, path: str, field: str) -> tupl
         dist[:] = p[4:12]  # k1 k2 p1 p2 k3 k4 k5 k6: already OpenCV order
     K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
     return _intrinsics(K, path, f"{field}.params"), dist
+
+
+def downsample_factor(K_sensor: np.ndarray, image_size: tuple[int, int], sensor_size: tuple[int, int]) -> int:
+    """Integer factor between the calibration's sensor and the stored images.
+
+    K_sensor: (B, 3, 3) the rig's intrinsics in sensor pixels; image_size, sensor_size: (width, height).
+    The exact sensor match wins; otherwise the factor is read from the median principal point, which a
+    sensor's calibration places near its centre. Raises ValueError when neither gives an integer.
+    """
+    width, height = image_size
+    for factor in range(1, 65):
+        if (width * factor, height * factor) == tuple(sensor_size):
+            return factor
+    centre = np.median(K_sensor[:, :2, 2], axis=0)
+    implied = (2.0 * centre + 1.0) / np.array([width, height])  # sensor size / image size per axis
+    factor = int(round(float(implied.mean())))
+    if factor < 1 or abs(implied.mean() - factor) > FACTOR_TOLERANCE or np.abs(implied - factor).max() > 0.5:
+        raise ValueError(
+            f"images are {width}x{height}, which is no integer downscale of the {sensor_size[0]}x{sensor_size[1]} sensor, "
+            f"and the principal points imply factors {implied.round(2).tolist()}"
+        )
+    return factor

@@ -5,18 +5,12 @@ Adapters are imported when their command runs, so ``relightanyone --help`` stays
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 
 import click
 
-ADAPTER_MODULES = {
-    "faceolat": "faceolat",
-    "ava256": "ava256",
-    "stereo-rig": "stereo_rig",
-    "nersemble": "nersemble",
-    "custom": "custom",
-}
+from relightanyone.ingest.registry import ADAPTERS, AdapterSpec, load_adapter
+
 PRESETS = ("tiny", "demo", "small", "paper")
 
 
@@ -57,8 +51,8 @@ def _test_subjects(listed: tuple[str, ...], splits_file: Path | None) -> tuple[s
     return tuple(sorted(names))
 
 
-def _adapter_command(command_name: str, module_name: str) -> click.Command:
-    tracking_required = command_name != "custom"
+def _adapter_command(spec: AdapterSpec) -> click.Command:
+    command_name, tracking_required = spec.command, spec.tracking_required
 
     @click.command(command_name)
     @click.argument("src", type=click.Path(exists=True, file_okay=False, path_type=Path))
@@ -132,7 +126,7 @@ def _adapter_command(command_name: str, module_name: str) -> click.Command:
         from relightanyone.ingest.records import AdapterOptions, LayoutError
         from relightanyone.ingest.runner import found_lines, ingest_dataset, prepare
 
-        adapter = importlib.import_module(f"relightanyone.ingest.{module_name}")
+        adapter = load_adapter(command_name)
         options = AdapterOptions(
             dataset_name=name,
             subjects=_names(subjects),
@@ -166,6 +160,7 @@ def _adapter_command(command_name: str, module_name: str) -> click.Command:
             click.echo(line)
 
     command.help = (
+        f"{spec.description[0].upper()}{spec.description[1:]}.\n\n"
         f"Normalize a {command_name} capture at SRC into OUT/<name> (decode, colour calibration, canonical "
         "cameras, undistort, crop around the tracked mesh, mask, shards). Re-running resumes an interrupted run."
     )
@@ -177,7 +172,7 @@ def ingest_group() -> None:
     """Normalize native capture datasets into the normalized format."""
 
 
-for _name, _module in ADAPTER_MODULES.items():
-    ingest_group.add_command(_adapter_command(_name, _module))
+for _spec in ADAPTERS.values():
+    ingest_group.add_command(_adapter_command(_spec))
 
 COMMANDS: dict[str, click.Command] = {"ingest": ingest_group}

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.align.colour import apply_ccm, gamma_to_linear, linear_to_srgb, srgb_to_linear
 from relightanyone.ingest.records import ColourCalibration, ImageRef
 
 DISPLAY_CODECS = {"avif-srgb": "srgb", "png-srgb": "srgb", "jpg-srgb": "srgb", "mp4-frame": "srgb"}
@@ -156,7 +157,6 @@ def _decode_dng(data: bytes, where: str) -> np.ndarray:
 def _code_table(codec: str, levels: int) -> np.ndarray:
     """``(levels,)`` float32 linear value of every integer code of ``codec`` (one transfer-function
     evaluation per process instead of one per pixel)."""
-    from relightanyone.align.colour import gamma_to_linear, srgb_to_linear
 
     unit = np.arange(levels, dtype=np.float64) / (levels - 1)
     if codec in DISPLAY_CODECS:
@@ -364,7 +364,6 @@ def apply_colour_calibration(image_linear: np.ndarray, calibration: ColourCalibr
     ``"linear"``: ``M @ (rgb - black) + offset`` on scene-linear values. ``"display"``: the same on the
     sRGB-encoded values (clipped to [0, 1] as the dataset's own loaders do), then decoded to linear.
     """
-    from relightanyone.align.colour import apply_ccm, linear_to_srgb, srgb_to_linear
 
     identity = (
         np.array_equal(calibration.matrix, np.eye(3))

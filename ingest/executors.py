@@ -14,6 +14,8 @@ import threading
 from collections.abc import Callable, Sequence
 from functools import partial
 
+from relightanyone.ingest.subject_task import run_subject_task
+
 EXECUTORS = ("local", "ray")
 WORKER_PRELOAD = (
     "relightanyone.ingest.runner",  # the alignment's task function lives there
@@ -83,7 +85,6 @@ def run_tasks(
 ):
     """Run ``run_subject_task(writer, settings, task)`` for every task (:func:`map_items`); returns the
     results in task order. The progress bar counts views."""
-    from relightanyone.ingest.subject_task import run_subject_task
 
     bar = _bar(sum(len(t.plan.views) for t in tasks), progress, f"ingest {settings.dataset}")
     try:

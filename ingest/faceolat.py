@@ -30,6 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.align.colour import read_faceolat_colour_matrix
+from relightanyone.ingest.calibration import CalibrationError
+from relightanyone.ingest.metashape import read_metashape_xml
 from relightanyone.ingest.records import (
     AdapterOptions,
     ColourCalibration,
@@ -321,7 +324,6 @@ def _native_cameras(
 
 def _colour(src: Path, codec: str) -> ColourCalibration:
     """FaceOLAT's matrix for linear EXR; the AVIF export has it applied already (exr2avif.py's default)."""
-    from relightanyone.align.colour import read_faceolat_colour_matrix
 
     path = src / COLOUR_FILE
     try:
@@ -351,8 +353,6 @@ def _plan_subject(
     found: dict,
 ) -> SubjectPlan:
     """Views and refusals of one subject (all its captures)."""
-    from relightanyone.ingest.calibration import CalibrationError
-    from relightanyone.ingest.metashape import read_metashape_xml
 
     plan = SubjectPlan(subject=subject, split=options.split_of(subject), views=[])
     xml = f"{CAMERAS_DIR}/{subject}.xml"

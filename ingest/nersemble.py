@@ -40,6 +40,13 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.align.colour import read_nersemble_colour_calibration, read_nersemble_v1_affine
+from relightanyone.ingest.calibration import (
+    NERSEMBLE_FULL_SENSOR,
+    CalibrationError,
+    downsample_factor,
+    from_nersemble_params,
+)
 from relightanyone.ingest.records import (
     AdapterOptions,
     ColourCalibration,
@@ -155,8 +162,6 @@ def scale_factor(K_sensor: np.ndarray, size: tuple[int, int], calibration: dict)
 
     K_sensor: (B, 3, 3). The sensor is the file's ``width``/``height`` or NeRSemble's 2200x3208 frame.
     """
-    from relightanyone.ingest.ava256 import downsample_factor
-    from relightanyone.ingest.calibration import NERSEMBLE_FULL_SENSOR
 
     sensor = (
         int(calibration.get("width", NERSEMBLE_FULL_SENSOR[0])),
@@ -173,8 +178,6 @@ def read_rig(path: Path, size: tuple[int, int]) -> tuple[dict[str, NativeCamera]
     import json
 
     import torch
-
-    from relightanyone.ingest.calibration import CalibrationError, from_nersemble_params
 
     if not Path(path).is_file():
         raise CalibrationError(path, "<file>", "calibration file not found")
@@ -212,7 +215,6 @@ def read_rig(path: Path, size: tuple[int, int]) -> tuple[dict[str, NativeCamera]
 
 
 def _v2_colour(path: Path, source: str) -> dict[str, ColourCalibration]:
-    from relightanyone.align.colour import read_nersemble_colour_calibration
 
     return {
         serial: ColourCalibration(matrix=M, offset=offset, space="linear", source=source)
@@ -221,7 +223,6 @@ def _v2_colour(path: Path, source: str) -> dict[str, ColourCalibration]:
 
 
 def _v1_colour(path: Path, source: str) -> ColourCalibration:
-    from relightanyone.align.colour import read_nersemble_v1_affine
 
     A = read_nersemble_v1_affine(path)
     # v1 multiplies row vectors (rgb @ A[:3, :3]); a ColourCalibration multiplies columns.
@@ -231,7 +232,6 @@ def _v1_colour(path: Path, source: str) -> ColourCalibration:
 def _plan_v2(
     folder: Path, root: Path, sequence: str, options: AdapterOptions, plan: SubjectPlan, facts: dict
 ) -> None:
-    from relightanyone.ingest.calibration import CalibrationError
 
     subject = plan.subject
     rel = folder.relative_to(root).as_posix() if folder != root else ""
@@ -336,7 +336,6 @@ def _plan_v2(
 def _plan_v1(
     folder: Path, root: Path, sequence: str, options: AdapterOptions, plan: SubjectPlan, facts: dict
 ) -> None:
-    from relightanyone.ingest.calibration import CalibrationError
 
     subject = plan.subject
     rel = folder.relative_to(root).as_posix() if folder != root else ""

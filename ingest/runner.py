@@ -26,9 +26,35 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.align.geometry import (
+    decompose_similarity,
+    light_intensities_to_canonical,
+    lights_to_canonical,
+    similarity,
+)
+from relightanyone.format.arrow_io import atomic_write_bytes
+from relightanyone.format.codecs import DEFAULT_IMAGE_ENCODING
+from relightanyone.format.schema import (
+    NECK_MASK_NAME,
+    TEMPLATE_NAME,
+    DatasetInfo,
+    LightRow,
+    Provenance,
+    QuarantineEntry,
+    fingerprint_config,
+)
+from relightanyone.format.shards import ShardWriter
+from relightanyone.ingest.executors import map_items, run_tasks
 from relightanyone.ingest.records import DatasetPlan, SubjectPlan
 from relightanyone.ingest.subject_task import IngestSettings, SubjectTask, decoder_share
-from relightanyone.ingest.tracking import AlignmentError, Template, align_subject, load_template
+from relightanyone.ingest.tracking import (
+    AlignmentError,
+    Template,
+    align_subject,
+    find_template,
+    load_template,
+    shipped_tracking,
+)
 
 # Square crop side per preset (DESIGN §6: tiny/demo crops 128², paper 1024²).
 PRESET_SIZES = {"tiny": 128, "demo": 128, "small": 512, "paper": 1024}
@@ -38,8 +64,6 @@ BYTES_PER_PIXEL = {"raw-f16": 2.02, "png16": 1.98, "exr-half": 1.38}
 TRACKER_NAME = "VHAP export"
 SHIPPED_TRACKER_NAME = "meshes shipped with the capture"
 REPORT_NAME = "ingest_report.json"
-TEMPLATE_NAME = "template.obj"
-NECK_MASK_NAME = "template_neck_mask.txt"
 _TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
 
@@ -125,8 +149,6 @@ def plan_tasks(
     """Relate every (subject, frame) of ``plan`` to the tracking (no pixel is decoded): the VHAP export
     under ``tracking_dir``, or, without one, the meshes the plan ships (custom captures). Subjects are
     aligned in parallel on the ingest's executor."""
-    from relightanyone.ingest.executors import map_items
-    from relightanyone.ingest.tracking import shipped_tracking
 
     subjects = sorted(plan.subjects, key=lambda s: s.subject)
     items = []
@@ -174,7 +196,6 @@ def estimate_bytes(views: int, out_size: int, encoding: str) -> int:
 
 # ------------------------------------------------------------------------------------------ coordinator
 def _atomic_copy(src: Path, dst: Path) -> None:
-    from relightanyone.format.arrow_io import atomic_write_bytes
 
     atomic_write_bytes(dst, Path(src).read_bytes())
 
@@ -182,7 +203,6 @@ def _atomic_copy(src: Path, dst: Path) -> None:
 def mean_similarity(transforms: list[np.ndarray]) -> np.ndarray:
     """The chordal mean of similarities ``(4, 4)``: mean scale, rotation of the mean rotation matrix
     (projected back onto SO(3)), mean translation."""
-    from relightanyone.align.geometry import decompose_similarity, similarity
 
     parts = [decompose_similarity(T) for T in transforms]
     U, _, Vt = np.linalg.svd(np.mean([R for _, R, _ in parts], axis=0))
@@ -197,8 +217,6 @@ def _lights(plan: DatasetPlan, tasks: list[SubjectTask]) -> tuple[list, dict]:
     from a slightly different canonical pose; ``lights.arrow`` holds one rig, placed with the mean of all
     frames' ``canonical_from_native`` (the mean head pose), and the report gives the largest deviation.
     """
-    from relightanyone.align.geometry import light_intensities_to_canonical, lights_to_canonical
-    from relightanyone.format.schema import LightRow
 
     if plan.light_positions is None:
         return [], {}
@@ -235,7 +253,6 @@ def _lights(plan: DatasetPlan, tasks: list[SubjectTask]) -> tuple[list, dict]:
 
 def _fingerprint(plan: DatasetPlan, settings: IngestSettings, template: Template) -> str:
     """Changes whenever the plan's views, the settings or the template change (resume safety)."""
-    from relightanyone.format.schema import fingerprint_config
 
     views = [
         (
@@ -281,8 +298,6 @@ def prepare(
     ``tracking_dir`` None uses the meshes the plan ships (custom captures); then ``template`` is needed
     unless the dataset folder holds ``template.obj``. ``workers``/``executor`` as for the ingest itself.
     """
-    from relightanyone.format.codecs import DEFAULT_IMAGE_ENCODING
-    from relightanyone.ingest.tracking import find_template
 
     if preset not in PRESET_SIZES:
         raise ValueError(f"unknown preset {preset!r}; expected one of {', '.join(PRESET_SIZES)}")
@@ -361,10 +376,6 @@ def ingest_dataset(
         template: the template OBJ (default: found next to the tracking export).
         prepared: the result of :func:`prepare` when the caller already ran it (the CLI prints it first).
     """
-    from relightanyone.format.arrow_io import atomic_write_bytes
-    from relightanyone.format.schema import DatasetInfo, Provenance, QuarantineEntry
-    from relightanyone.format.shards import ShardWriter
-    from relightanyone.ingest.executors import run_tasks
 
     start = time.perf_counter()
     settings, loaded, tasks = prepared or prepare(

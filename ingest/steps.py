@@ -16,6 +16,9 @@ from typing import Any
 
 import numpy as np
 
+from relightanyone.align.geometry import camera_centre
+from relightanyone.compiled import load_extension
+
 # Largest ratio of the remapped crop's side to the output's when downscaling (memory: out² · k² pixels).
 MAX_SUPERSAMPLING = 16
 
@@ -260,7 +263,6 @@ SILHOUETTE_METHODS = ("auto", "depth-buffer", "rays")
 def load_silhouette_kernel():
     """The compiled depth-buffer silhouette (``ingest/csrc/mesh_silhouette.cpp``), or None (with a warning)
     when it cannot be built."""
-    from relightanyone.compiled import load_extension
 
     return load_extension(
         "relightanyone_silhouette",
@@ -404,8 +406,6 @@ class MeshSilhouette:
         """``(ceil(H / b), ceil(W / b))`` bool: blocks a projected contour edge may cross (grown by one
         block, so the line drawing cannot miss one); None when a vertex is not in front of the camera."""
         import cv2
-
-        from relightanyone.align.geometry import camera_centre
 
         cam = _camera_points(self.vertices, w2c)
         if np.any(cam[:, 2] <= NEAR_PLANE):

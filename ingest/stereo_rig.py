@@ -35,6 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.align.chart import ChartNotFoundError, fit_chart_correction
+from relightanyone.ingest.calibration import CalibrationError, from_colmap
+from relightanyone.ingest.decode import DecodeError, decode_bytes
 from relightanyone.ingest.records import (
     AdapterOptions,
     ColourCalibration,
@@ -126,7 +129,6 @@ def read_cameras(model: Path, metres: float) -> dict[str, NativeCamera]:
 
     Raises ``CalibrationError`` naming the folder and field when the model is unreadable or invalid.
     """
-    from relightanyone.ingest.calibration import CalibrationError, from_colmap
 
     rig = from_colmap(model)
     cameras: dict[str, NativeCamera] = {}
@@ -149,7 +151,6 @@ def read_cameras(model: Path, metres: float) -> dict[str, NativeCamera]:
 
 def decode_raw(path: Path) -> np.ndarray:
     """``(H, W, 3)`` float32 linear camera RGB of a DNG, decoded exactly as the runner decodes ``dng-raw``."""
-    from relightanyone.ingest.decode import DecodeError, decode_bytes
 
     try:
         data = Path(path).read_bytes()
@@ -165,7 +166,6 @@ def fit_camera_chart(path: Path) -> tuple[np.ndarray, dict]:
     ``{"rmse", "delta_e_mean", "delta_e_max"}`` on the 24 patches. Raises ``DecodeError`` (unreadable file)
     or ``ChartNotFoundError`` (no chart).
     """
-    from relightanyone.align.chart import fit_chart_correction
 
     matrix, residual = fit_chart_correction(decode_raw(path), method=CHART_METHOD)
     return np.asarray(matrix, dtype=np.float64), {
@@ -179,8 +179,6 @@ def calibrate_cameras(
     src: Path, names: list[str], pattern: str
 ) -> tuple[dict[str, ColourCalibration], dict[str, dict], list[Refusal]]:
     """Chart-fitted colour calibration per camera, the fit residuals, and a refusal per failed camera."""
-    from relightanyone.align.chart import ChartNotFoundError
-    from relightanyone.ingest.decode import DecodeError
 
     calibrations, residuals, refusals = {}, {}, []
     for name in names:

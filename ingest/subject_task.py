@@ -14,9 +14,29 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.align.geometry import transform_points, w2c_to_canonical
+from relightanyone.format.codecs import encode_image, encode_mask
+from relightanyone.format.schema import MeshRow, QuarantineEntry, build_image_row
+from relightanyone.ingest.decode import (
+    DecodeError,
+    TaskDecoder,
+    apply_colour_calibration,
+    set_decoder_threads,
+)
 from relightanyone.ingest.records import SourceView, SubjectPlan
-from relightanyone.ingest.steps import MeshSilhouette
-from relightanyone.ingest.tracking import AlignmentError, FrameAlignment, Template, load_template
+from relightanyone.ingest.steps import (
+    MeshSilhouette,
+    crop_box_around_points,
+    project_points,
+    undistort_crop_resize,
+)
+from relightanyone.ingest.tracking import (
+    AlignmentError,
+    FrameAlignment,
+    Template,
+    load_template,
+)
+from relightanyone.render.mesh import read_obj_vertices
 
 
 @dataclass(frozen=True)
@@ -68,8 +88,6 @@ class TaskResult:
 
 def canonical_mesh(alignment: FrameAlignment, template: Template) -> np.ndarray:
     """``(V, 3)`` the frame's tracked mesh in canonical space (metres)."""
-    from relightanyone.align.geometry import transform_points
-    from relightanyone.ingest.tracking import read_obj_vertices
 
     tracked = alignment.tracked_vertices
     if tracked is None:
@@ -109,8 +127,6 @@ def normalize_view(
     Returns:
         ``(image (S, S, 3) float32, mask (S, S) float32, K (3, 3), w2c (4, 4), crop box)``.
     """
-    from relightanyone.align.geometry import w2c_to_canonical
-    from relightanyone.ingest.steps import crop_box_around_points, project_points, undistort_crop_resize
 
     camera = view.camera
     height, width = image.shape[:2]
@@ -137,8 +153,6 @@ def configure_task_threads(video_threads: int = 1) -> None:
     the video decoder gets ``video_threads``, the worker's share of the CPUs (:func:`decoder_share`)."""
     import cv2
 
-    from relightanyone.ingest.decode import set_decoder_threads
-
     cv2.setNumThreads(1)
     set_decoder_threads(avif=1, video=video_threads)
     try:
@@ -151,9 +165,6 @@ def configure_task_threads(video_threads: int = 1) -> None:
 
 def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> TaskResult:
     """Decode, calibrate, align, crop, mask and encode one subject's views into its part."""
-    from relightanyone.format.codecs import encode_image, encode_mask
-    from relightanyone.format.schema import MeshRow, QuarantineEntry, build_image_row
-    from relightanyone.ingest.decode import DecodeError, TaskDecoder, apply_colour_calibration
 
     configure_task_threads(settings.video_threads)
     plan = task.plan

@@ -26,6 +26,16 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.align.geometry import (
+    camera_centre,
+    estimate_canonical_from_mesh,
+    transform_points,
+    umeyama,
+    w2c_to_canonical,
+)
+from relightanyone.ingest.calibration import from_transforms_json
+from relightanyone.render.mesh import faces_touching, read_obj, read_obj_vertices
+
 NECK_MASK_NAMES = ("neck_mask.txt", "template_neck_mask.txt")
 TEMPLATE_NAMES = ("template.obj", "template/template.obj")
 MIN_SHARED_CAMERAS = 3
@@ -33,72 +43,6 @@ MIN_SHARED_CAMERAS = 3
 
 class AlignmentError(ValueError):
     """A frame cannot be brought into canonical space; the message names the subject, frame and cause."""
-
-
-def read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices ``(V, 3)`` float64 and triangles ``(F, 3)`` int64 (0-based) of an OBJ file.
-
-    Only ``v`` and ``f`` records are read (texture indices after ``/`` are ignored) and vertex order is
-    kept exactly, which the template topology relies on; polygons are fanned into triangles.
-    """
-    path = Path(path)
-    vertices: list[list[float]] = []
-    faces: list[list[int]] = []
-    try:
-        text = path.read_text(encoding="utf-8", errors="replace")
-    except OSError as error:
-        raise ValueError(f"{path}: cannot read mesh ({error.strerror or error})") from None
-    for number, line in enumerate(text.splitlines(), start=1):
-        if line.startswith("v "):
-            parts = line.split()
-            if len(parts) < 4:
-                raise ValueError(f"{path}:{number}: vertex needs 3 coordinates")
-            vertices.append([float(parts[1]), float(parts[2]), float(parts[3])])
-        elif line.startswith("f "):
-            index = [int(token.split("/")[0]) for token in line.split()[1:]]
-            index = [i - 1 if i > 0 else len(vertices) + i for i in index]
-            faces.extend([index[0], index[k], index[k + 1]] for k in range(1, len(index) - 1))
-    if not vertices:
-        raise ValueError(f"{path}: no vertices found (not an OBJ mesh?)")
-    V = np.asarray(vertices, dtype=np.float64)
-    F = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    if not np.all(np.isfinite(V)):
-        raise ValueError(f"{path}: vertices hold NaN or infinite coordinates")
-    if F.size and (F.min() < 0 or F.max() >= len(V)):
-        raise ValueError(f"{path}: faces index vertices outside 1..{len(V)}")
-    return V, F
-
-
-def read_obj_vertices(path: Path, expected: int | None = None) -> np.ndarray:
-    """Vertices ``(V, 3)`` of an OBJ (fast path: ``v`` records only, order kept); raises naming the file
-    when it is unreadable or when ``expected`` vertices are not there."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8", errors="replace")
-    except OSError as error:
-        raise ValueError(f"{path}: cannot read mesh ({error.strerror or error})") from None
-    lines = [line[2:] for line in text.split("\n") if line.startswith("v ")]
-    if not lines:
-        raise ValueError(f"{path}: no vertices found (not an OBJ mesh?)")
-    try:
-        # One C-level parse of all numbers; records with a w or colour column take the per-line path.
-        numbers = np.array(" ".join(lines).split(), dtype=np.float64)
-        if numbers.size == 3 * len(lines) and len(lines[0].split()) == 3:
-            vertices = numbers.reshape(-1, 3)
-        else:
-            vertices = np.asarray([line.split()[:3] for line in lines], dtype=np.float64)
-    except ValueError:
-        raise ValueError(f"{path}: a vertex record does not hold 3 numbers") from None
-    if vertices.ndim != 2 or vertices.shape[1] != 3:
-        raise ValueError(f"{path}: a vertex record does not hold 3 numbers")
-    if not np.all(np.isfinite(vertices)):
-        raise ValueError(f"{path}: vertices hold NaN or infinite coordinates")
-    if expected is not None and len(vertices) != expected:
-        raise ValueError(
-            f"{path}: mesh has {len(vertices)} vertices but the template has {expected} "
-            "(a different topology?)"
-        )
-    return vertices
 
 
 @dataclass(frozen=True)
@@ -175,7 +119,7 @@ def _load_template(path: Path, neck_mask_path: Path | None, signature: tuple) ->
         vertices=vertices,
         faces=faces,
         neck_vertices=neck_vertices,
-        neck_faces=neck_vertices[faces].any(axis=1),
+        neck_faces=faces_touching(neck_vertices, faces),
         sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
         neck_mask_path=Path(neck_mask_path) if neck_mask_path is not None else None,
     )
@@ -233,8 +177,6 @@ def read_vhap_subject(folder: Path) -> VhapSubject:
     camera-to-world and flipped ``cy`` undone there), one per ``camera_id``.
     """
     import json
-
-    from relightanyone.ingest.calibration import from_transforms_json
 
     folder = Path(folder)
     path = folder / "transforms.json"
@@ -302,7 +244,6 @@ def fit_tracker_from_native(
 ) -> tuple[np.ndarray, tuple[CameraAgreement, ...]]:
     """Similarity ``tracker_from_native (4, 4)`` from the cameras both rigs know, and the per-camera
     disagreement after the fit. Raises :class:`AlignmentError` with fewer than 3 shared cameras."""
-    from relightanyone.align.geometry import camera_centre, umeyama, w2c_to_canonical
 
     shared = sorted(name for name in native_w2c if name in tracker)
     if len(shared) < MIN_SHARED_CAMERAS:
@@ -335,7 +276,6 @@ def fit_canonical_from_tracker(
 ) -> tuple[np.ndarray, float]:
     """Rigid ``canonical_from_tracker (4, 4)`` with ``reference ≈ T @ tracked`` on ``rigid_vertices``
     ``(V,)`` bool, and the RMS residual in mm."""
-    from relightanyone.align.geometry import estimate_canonical_from_mesh, transform_points
 
     mask = rigid_vertices if rigid_vertices.sum() >= 3 else None
     T = estimate_canonical_from_mesh(tracked, reference, vertex_mask=mask, with_scale=False)

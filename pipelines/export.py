@@ -26,6 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.format.arrow_io import atomic_write_bytes
+from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
+from relightanyone.format.schema import MANIFEST_NAME, SchemaError
+from relightanyone.format.shards import dataset_dirs
+
 EXPORT_CONVENTIONS = {
     "colour": "scene-linear RGB after the dataset's colour calibration",
     "camera": "OpenCV pinhole: x right, y down, z forward; K in pixels of the stored image, pixel centres at "
@@ -97,9 +102,6 @@ def camera_entry(row, image_file: str, mask_file: str) -> dict:
 
 
 def _open_dataset(path: Path):
-    from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
-    from relightanyone.format.schema import MANIFEST_NAME, SchemaError
-    from relightanyone.format.shards import dataset_dirs
 
     path = Path(path)
     if not (path / MANIFEST_NAME).exists():
@@ -128,8 +130,6 @@ def export_dataset(
     is not one complete dataset or for unknown ``subjects``.
     """
     from tqdm import tqdm
-
-    from relightanyone.format.arrow_io import atomic_write_bytes
 
     if precision not in ("float", "half"):
         raise ExportError(f"precision {precision!r}: expected 'float' or 'half'")

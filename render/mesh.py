@@ -129,3 +129,74 @@ def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     for corner in range(3):
         accumulated = accumulated.index_add(-2, faces[:, corner], weighted)
     return torch.nn.functional.normalize(accumulated, dim=-1)
+
+
+def read_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices ``(V, 3)`` float64 and triangles ``(F, 3)`` int64 (0-based) of an OBJ file.
+
+    Only ``v`` and ``f`` records are read (texture indices after ``/`` are ignored) and vertex order is
+    kept exactly, which the template topology relies on; polygons are fanned into triangles.
+    """
+    path = Path(path)
+    vertices: list[list[float]] = []
+    faces: list[list[int]] = []
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as error:
+        raise ValueError(f"{path}: cannot read mesh ({error.strerror or error})") from None
+    for number, line in enumerate(text.splitlines(), start=1):
+        if line.startswith("v "):
+            parts = line.split()
+            if len(parts) < 4:
+                raise ValueError(f"{path}:{number}: vertex needs 3 coordinates")
+            vertices.append([float(parts[1]), float(parts[2]), float(parts[3])])
+        elif line.startswith("f "):
+            index = [int(token.split("/")[0]) for token in line.split()[1:]]
+            index = [i - 1 if i > 0 else len(vertices) + i for i in index]
+            faces.extend([index[0], index[k], index[k + 1]] for k in range(1, len(index) - 1))
+    if not vertices:
+        raise ValueError(f"{path}: no vertices found (not an OBJ mesh?)")
+    V = np.asarray(vertices, dtype=np.float64)
+    F = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if not np.all(np.isfinite(V)):
+        raise ValueError(f"{path}: vertices hold NaN or infinite coordinates")
+    if F.size and (F.min() < 0 or F.max() >= len(V)):
+        raise ValueError(f"{path}: faces index vertices outside 1..{len(V)}")
+    return V, F
+
+
+def faces_touching(vertex_mask: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``(F,)`` bool: faces with at least one vertex in ``vertex_mask (V,)`` (the neck cut's face rule)."""
+    return np.asarray(vertex_mask, dtype=bool)[faces].any(axis=1)
+
+
+def read_obj_vertices(path: str | Path, expected: int | None = None) -> np.ndarray:
+    """Vertices ``(V, 3)`` of an OBJ (fast path: ``v`` records only, order kept); raises naming the file
+    when it is unreadable or when ``expected`` vertices are not there."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as error:
+        raise ValueError(f"{path}: cannot read mesh ({error.strerror or error})") from None
+    lines = [line[2:] for line in text.split("\n") if line.startswith("v ")]
+    if not lines:
+        raise ValueError(f"{path}: no vertices found (not an OBJ mesh?)")
+    try:
+        # One C-level parse of all numbers; records with a w or colour column take the per-line path.
+        numbers = np.array(" ".join(lines).split(), dtype=np.float64)
+        if numbers.size == 3 * len(lines) and len(lines[0].split()) == 3:
+            vertices = numbers.reshape(-1, 3)
+        else:
+            vertices = np.asarray([line.split()[:3] for line in lines], dtype=np.float64)
+    except ValueError:
+        raise ValueError(f"{path}: a vertex record does not hold 3 numbers") from None
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"{path}: a vertex record does not hold 3 numbers")
+    if not np.all(np.isfinite(vertices)):
+        raise ValueError(f"{path}: vertices hold NaN or infinite coordinates")
+    if expected is not None and len(vertices) != expected:
+        raise ValueError(
+            f"{path}: mesh has {len(vertices)} vertices but the template has {expected} "
+            "(a different topology?)"
+        )
+    return vertices

@@ -21,7 +21,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from relightanyone.render import rasterize_cpp
+from relightanyone.render.rasterize_cpp import tile_kernel_available
 from relightanyone.render.rasterize_dense import composite_dense
+from relightanyone.render.rasterize_gsplat import gsplat_cuda_available, rasterize_gsplat
 from relightanyone.render.rasterize_torch import (
     bin_gaussians_to_tiles,
     composite_tiles_torch,
@@ -64,12 +67,8 @@ def select_backend(backend: str, means: Tensor) -> str:
     if backend != "auto":
         return backend
     if means.is_cuda:
-        from relightanyone.render.rasterize_gsplat import gsplat_cuda_available
-
         return "gsplat" if gsplat_cuda_available() else "torch"
     if means.dtype == torch.float32:
-        from relightanyone.render.rasterize_cpp import tile_kernel_available
-
         if tile_kernel_available():
             return "cpp"
     return "torch"
@@ -147,16 +146,12 @@ def rasterize(
     if chosen == "cpp" and tile_size != 16:
         raise ValueError(f"rasterize: backend 'cpp' uses 16x16 tiles, got tile_size={tile_size}")
     if chosen == "gsplat":
-        from relightanyone.render.rasterize_gsplat import gsplat_cuda_available
-
         if not (means.is_cuda and gsplat_cuda_available()):
             raise ValueError(
                 "rasterize: backend 'gsplat' needs CUDA tensors and gsplat (pip install 'relightanyone[cuda]'); "
                 "use backend='auto' to fall back to the CPU backends"
             )
     if chosen == "gsplat":
-        from relightanyone.render.rasterize_gsplat import rasterize_gsplat
-
         return RasterOutput(
             *rasterize_gsplat(
                 means,
@@ -177,12 +172,7 @@ def rasterize(
             )
         )
 
-    compiled = None
-    if chosen == "cpp":
-        from relightanyone.render import rasterize_cpp as compiled
-
-        if compiled.load_tile_kernel() is None:
-            compiled = None
+    compiled = rasterize_cpp if chosen == "cpp" and rasterize_cpp.load_tile_kernel() is not None else None
     # The fused compiled projection has no camera gradients: optimised cameras take the PyTorch projection.
     if compiled is not None and means.dtype == torch.float32 and not (w2c.requires_grad or K.requires_grad):
         projection = compiled.project_gaussians_cpp(

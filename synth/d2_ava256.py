@@ -40,6 +40,7 @@ from relightanyone.synth.capture import (
     random_world_from_canonical,
     report_progress,
     spherical_direction,
+    srgb_encode,
     to_uint8,
     write_zip,
 )
@@ -257,8 +258,6 @@ def expected_renders(preset: Preset) -> int:
 def preview_images(native_root: Path, count: int) -> list[tuple[str, np.ndarray]]:
     """Up to ``count`` (label, sRGB uint8 (H, W, 3)) views of the first capture, decoded from its zips."""
     import zipfile
-
-    from relightanyone.synth.capture import srgb_encode
 
     captures = sorted(p for p in Path(native_root).glob("*/decoder") if p.is_dir())
     if not captures:

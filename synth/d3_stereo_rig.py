@@ -41,6 +41,8 @@ from relightanyone.synth.capture import (
     random_world_from_canonical,
     report_progress,
     spherical_direction,
+    srgb_encode,
+    to_uint8,
 )
 from relightanyone.synth.presets import Preset
 from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render, textured_quad
@@ -311,7 +313,6 @@ def decode_dng(path: Path) -> np.ndarray:
 
 def preview_images(native_root: Path, count: int) -> list[tuple[str, np.ndarray]]:
     """A chart frame and the first subject's views, decoded from the DNGs and sRGB-encoded."""
-    from relightanyone.synth.capture import srgb_encode, to_uint8
 
     root = Path(native_root)
     paths = sorted((root / "calibration" / "colorchecker").glob("*.dng"))[:1]

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.synth.d1_faceolat import d1_rig_lights
 from relightanyone.synth.envmap import olat_relight_weights, procedural_envmaps, write_exr
 from relightanyone.synth.presets import Preset, get_preset
 from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render
@@ -144,7 +145,6 @@ def answer_lights(preset: Preset) -> tuple[PointLights, np.ndarray]:
 
     The rig is the one D1's generator uses (its own fixed seed), so answers and D1 share their lights.
     """
-    from relightanyone.synth.d1_faceolat import d1_rig_lights
 
     rig = d1_rig_lights(preset)
     indices = np.unique(np.round(np.linspace(0, len(rig) - 1, preset.answer_lights)).astype(np.int64))

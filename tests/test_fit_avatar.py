@@ -19,7 +19,6 @@ from relightanyone.model.fit.avatar import FittedAvatar
 from relightanyone.model.fit.fitter import (
     FitSettings,
     Fitter,
-    decode_codes,
     fit_subject,
     load_relightable_model,
     locality_codes,
@@ -161,8 +160,8 @@ def _finetuned(world, locality_weight: float) -> tuple[Fitter, float, float]:
     with torch.no_grad():
         change = float(
             locality_loss(
-                decode_codes(fitter.stage1, codes, z_l),
-                decode_codes(fitter.reference, codes, z_l),
+                fitter.stage1.decode(codes, z_l),
+                fitter.reference.decode(codes, z_l),
                 fitter.spacing,
             ).mean()
         )

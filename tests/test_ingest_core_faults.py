@@ -96,7 +96,7 @@ def test_clean_capture_is_written_with_provenance(capture, tmp_path):
     assert (summary.path / "template.obj").read_bytes() == (capture / "template.obj").read_bytes()
     assert len(dataset.meshes()) == 4
     # The reprojection overlay draws the mesh where the mask is (4x upscaled drawing).
-    from relightanyone.ingest.overlay import HEAD_COLOUR, reprojection_overlays
+    from relightanyone.format.overlay import HEAD_COLOUR, reprojection_overlays
 
     key = "custom/s1/000001/c2/full"
     (overlay,) = reprojection_overlays(summary.path, keys=[key])

@@ -18,7 +18,8 @@ from relightanyone.format.reader import NormalizedDataset
 from relightanyone.ingest.records import AdapterOptions
 from relightanyone.ingest.runner import ingest_dataset
 from relightanyone.ingest.steps import crop_resize_intrinsics, mesh_mask, project_points
-from relightanyone.ingest.tracking import load_template, read_obj_vertices
+from relightanyone.ingest.tracking import load_template
+from relightanyone.render.mesh import read_obj_vertices
 from relightanyone.synth.truth import DatasetTruth
 
 # dataset id -> (adapter module, native folder); subjects/cameras kept small for speed.

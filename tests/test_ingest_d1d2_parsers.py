@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from relightanyone.ingest import ava256, faceolat
+from relightanyone.ingest.calibration import downsample_factor
 from relightanyone.ingest.records import AdapterOptions
 
 
@@ -85,13 +86,13 @@ def test_ava_subject_names_from_both_folder_conventions():
 
 def test_ava_downsample_factor():
     K = np.array([[[10000.0, 0, 1413.0], [0, 10000.0, 1783.0], [0, 0, 1]]])
-    assert ava256.downsample_factor(K, (667, 1024), (2668, 4096)) == 4
-    assert ava256.downsample_factor(K, (1334, 2048), (2668, 4096)) == 2
+    assert downsample_factor(K, (667, 1024), (2668, 4096)) == 4
+    assert downsample_factor(K, (1334, 2048), (2668, 4096)) == 2
     # Another sensor: the principal point (near the sensor centre) gives the factor.
     K_small = np.array([[[800.0, 0, (104 * 4 - 1) / 2 + 3], [0, 800.0, (160 * 4 - 1) / 2 - 2], [0, 0, 1]]])
-    assert ava256.downsample_factor(K_small, (104, 160), (2668, 4096)) == 4
+    assert downsample_factor(K_small, (104, 160), (2668, 4096)) == 4
     with pytest.raises(ValueError, match="no integer downscale"):
-        ava256.downsample_factor(K_small, (150, 160), (2668, 4096))
+        downsample_factor(K_small, (150, 160), (2668, 4096))
 
 
 def test_ava_frame_selection():

@@ -33,10 +33,20 @@ import torch
 
 from relightanyone.model.networks.gaussians import TexelBinding
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
-from relightanyone.model.networks.reflectance import RelightParams, camera_centres
+from relightanyone.model.networks.reflectance import RelightParams, camera_centres, relight
 from relightanyone.model.networks.stage2 import Stage2Model, texel_mesh_normals
-from relightanyone.render.envmap import PrefilteredEnvmap
+from relightanyone.model.train.checkpoint import save_checkpoint
+from relightanyone.render.envmap import PrefilteredEnvmap, envmap_to_sh, load_envmap, prefilter_envmap
 from relightanyone.render.lights import DirectionalLights, PointLights
+from relightanyone.render.rasterize import rasterize
+from relightanyone.render.sh import project_directions_to_sh
+from relightanyone.render.shading import (
+    combine_diffuse_specular,
+    diffuse_color,
+    reflected_view_directions,
+    specular_directional_lights,
+    specular_envmap,
+)
 
 AVATAR_FORMAT = "relightanyone-avatar"
 AVATAR_VERSION = 1
@@ -50,7 +60,6 @@ Lighting = PointLights | DirectionalLights | PrefilteredEnvmap | torch.Tensor | 
 
 def prefilter_for_shading(env: torch.Tensor) -> PrefilteredEnvmap:
     """The specular mip chain of a ``(3, H, W)`` map at about its own resolution (16 to 256 rows)."""
-    from relightanyone.render.envmap import prefilter_envmap
 
     smallest = 2 << (ENVMAP_LEVELS - 1)  # the coarsest level keeps at least 2 rows
     base = min(max(1 << int(env.shape[1] - 1).bit_length(), smallest), ENVMAP_MAX_BASE_HEIGHT)
@@ -62,8 +71,6 @@ def resolve_lighting(lighting: Lighting) -> PointLights | DirectionalLights | Pr
     if isinstance(lighting, (PointLights, DirectionalLights, PrefilteredEnvmap)):
         return lighting
     if isinstance(lighting, (str, Path)):
-        from relightanyone.render.envmap import load_envmap
-
         return prefilter_for_shading(load_envmap(lighting))
     if isinstance(lighting, torch.Tensor):
         if lighting.ndim != 3 or lighting.shape[0] != 3:
@@ -95,16 +102,6 @@ def shade_reflectance(
     Returns:
         (C, N, 3) linear RGB.
     """
-    from relightanyone.model.networks.reflectance import relight
-    from relightanyone.render.envmap import envmap_to_sh
-    from relightanyone.render.sh import project_directions_to_sh
-    from relightanyone.render.shading import (
-        combine_diffuse_specular,
-        diffuse_color,
-        reflected_view_directions,
-        specular_directional_lights,
-        specular_envmap,
-    )
 
     views = positions.shape[0]
     if isinstance(lighting, PointLights):
@@ -165,7 +162,6 @@ def relight_views(
         lightings: see the module docstring; resolved once each.
         background: optional (3,) linear RGB; black by default.
     """
-    from relightanyone.render.rasterize import rasterize
 
     if lightings_per_pass < 1:
         raise ValueError(f"lightings_per_pass must be >= 1, got {lightings_per_pass}")
@@ -347,7 +343,6 @@ class FittedAvatar:
         Returns:
             (C, 3, H, W) linear RGB.
         """
-        from relightanyone.render.rasterize import rasterize
 
         width, height = check_pinhole_cameras(cameras)
         w2c, K = cameras.w2c.float(), cameras.K.float()
@@ -368,7 +363,6 @@ class FittedAvatar:
 
     def save(self, path: str | Path) -> Path:
         """Write the avatar to one file (atomic: temporary file, fsync, rename)."""
-        from relightanyone.model.train.checkpoint import save_checkpoint
 
         path = Path(path)
         payload = {
@@ -484,7 +478,6 @@ def decoded_avatar(model, subject_index: int, tracked_vertices: torch.Tensor | N
     Returns:
         the avatar; its scene lighting is the calibrated rig (the OLAT dataset's full-on light).
     """
-    from relightanyone.model.fit.fitter import decode_codes
 
     stage1 = model.stage1
     if not 0 <= subject_index < stage1.identity_codes.shape[0]:
@@ -493,7 +486,7 @@ def decoded_avatar(model, subject_index: int, tracked_vertices: torch.Tensor | N
         )
     with torch.no_grad():
         z_id = stage1.identity_codes[subject_index : subject_index + 1].detach()
-        vertices, gaussians = decode_codes(stage1, z_id, model.lighting_code.reshape(1, -1))
+        vertices, gaussians = stage1.decode(z_id, model.lighting_code.reshape(1, -1))
     return avatar_from_decoded(
         vertices,
         gaussians,

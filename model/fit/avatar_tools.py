@@ -22,9 +22,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from relightanyone.model.fit.avatar import FittedAvatar, resolve_lighting
+from relightanyone.align.colour import linear_to_srgb
+from relightanyone.format.preview import render_contact_sheet
+from relightanyone.format.reader import NormalizedDataset
+from relightanyone.model.fit.avatar import (
+    FittedAvatar,
+    check_pinhole_cameras,
+    relight_views,
+    resolve_lighting,
+)
+from relightanyone.model.networks.render import orbit_cameras, to_display
 from relightanyone.render.camera import Cameras
-from relightanyone.render.envmap import PrefilteredEnvmap
+from relightanyone.render.envmap import PrefilteredEnvmap, load_envmap, rotate_envmap_yaw, save_envmap
 from relightanyone.render.lights import PointLights
 
 ORBIT_ELEVATION_DEG = 10.0
@@ -86,7 +95,6 @@ def rotate_prefiltered(env: PrefilteredEnvmap, angle_rad: float) -> PrefilteredE
     The angular filter commutes with a turn about the vertical axis, so this equals prefiltering the turned
     map (exactly for whole-column shifts at every level) without filtering again.
     """
-    from relightanyone.render.envmap import rotate_envmap_yaw
 
     levels = tuple(rotate_envmap_yaw(level, angle_rad) for level in env.levels)
     return PrefilteredEnvmap(levels=levels, sigma_step=env.sigma_step)
@@ -94,7 +102,6 @@ def rotate_prefiltered(env: PrefilteredEnvmap, angle_rad: float) -> PrefilteredE
 
 def envmap_lightings(path: Path, rotations: int = 1) -> list[NamedLighting]:
     """An environment map, or ``rotations`` copies of it turned by ``360° i / rotations`` about +y."""
-    from relightanyone.render.envmap import load_envmap
 
     if rotations < 1:
         raise ValueError(f"--rotate must be >= 1, got {rotations}")
@@ -145,7 +152,6 @@ def orbit_cameras_around(
     The distance defaults to ``ORBIT_DISTANCE_RADII`` head radii; the focal length makes the head's radius
     cover ``ORBIT_FILL`` of the image side. Names are ``orbit000`` ...
     """
-    from relightanyone.model.networks.render import orbit_cameras
 
     if count < 1 or size < 2:
         raise ValueError(f"an orbit needs --count >= 1 and --size >= 2, got {count} and {size}")
@@ -174,7 +180,6 @@ def dataset_cameras(
     With ``keys``: exactly those rows. Otherwise the rows of ``subject``'s first frame (full-on rows when
     it has any). Only cameras of the first row's image size are kept (one render size per call).
     """
-    from relightanyone.format.reader import NormalizedDataset
 
     dataset = NormalizedDataset(dataset_dir)
     if keys is not None:
@@ -257,8 +262,6 @@ def render_frames(
     """
     from tqdm import tqdm
 
-    from relightanyone.model.fit.avatar import check_pinhole_cameras, relight_views
-
     width, height = check_pinhole_cameras(cameras)
     names = cameras.names or tuple(f"cam{i:03d}" for i in range(len(cameras)))
     device = avatar.means.device
@@ -293,14 +296,12 @@ def exposure_gain(images: Sequence[torch.Tensor], stops: float | None) -> float:
 
 def to_srgb8(image: torch.Tensor, gain: float = 1.0) -> np.ndarray:
     """(3, H, W) linear RGB -> (H, W, 3) uint8 with the sRGB transfer function (after ``gain``, clipped)."""
-    from relightanyone.model.networks.render import to_display
 
     return to_display(image * gain)
 
 
 def write_exr(path: Path, image: torch.Tensor) -> None:
     """(3, H, W) linear RGB -> float32 EXR."""
-    from relightanyone.render.envmap import save_envmap
 
     save_envmap(path, image)
 
@@ -391,7 +392,6 @@ def contact_sheet(
     frames: Sequence[np.ndarray], labels: Sequence[str], columns: int | None = None
 ) -> np.ndarray:
     """Labelled grid of (H, W, 3) uint8 frames -> one uint8 image (tiles at most 256 px)."""
-    from relightanyone.format.preview import render_contact_sheet
 
     tile = min(256, max(max(frame.shape[:2]) for frame in frames))
     return render_contact_sheet(list(frames), [None] * len(frames), list(labels), tile=tile, columns=columns)
@@ -409,7 +409,6 @@ def export_gaussians(
     ``colour_space="srgb"``: linear colours × gain, clipped to [0, 1] and sRGB-encoded (what viewers show
     as is). ``"linear"``: linear colours × gain, unclipped. Returns means, quats, scales, opacities, colours.
     """
-    from relightanyone.align.colour import linear_to_srgb
 
     if colour_space not in ("srgb", "linear"):
         raise ValueError(f"colour space must be 'srgb' or 'linear', got {colour_space!r}")

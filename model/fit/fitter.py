@@ -31,13 +31,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relightanyone.format.reader import NormalizedDataset
 from relightanyone.model.fit.avatar import FittedAvatar, avatar_from_decoded
 from relightanyone.model.fit.views import FitViews, load_fit_views
-from relightanyone.model.networks.gaussians import Gaussians, assemble_gaussians
+from relightanyone.model.networks.gaussians import Gaussians
 from relightanyone.model.networks.presets import Stage2Preset
 from relightanyone.model.networks.reflectance import RelightParams, camera_centres, relight
 from relightanyone.model.networks.stage1 import Stage1Model
-from relightanyone.model.networks.stage2 import Stage2Model, texel_mesh_normals
+from relightanyone.model.networks.stage2 import Stage2Model, head_frame, texel_mesh_normals
+from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from relightanyone.model.train.losses import (
     composite_over_background,
     masked_l1,
@@ -46,8 +48,10 @@ from relightanyone.model.train.losses import (
     scale_bound_loss,
     vertex_l2,
 )
+from relightanyone.model.train.run import load_run
 from relightanyone.model.train.sampling import iteration_generator
-from relightanyone.render.lights import PointLights
+from relightanyone.render.lights import PointLights, full_on_rig_from_table, olat_rig_from_table
+from relightanyone.render.rasterize import rasterize
 
 VIEW_STREAM = 10  # generator streams of the fit (views per step, locality codes, backgrounds)
 LOCALITY_STREAM = 11
@@ -110,12 +114,6 @@ def load_relightable_model(stage1_run: Path, stage2_run: Path) -> RelightableMod
     """Load a stage-1 run and the stage-2 run trained on it (not a single-stage baseline run)."""
     import json
 
-    from relightanyone.format.reader import NormalizedDataset
-    from relightanyone.model.networks.stage2 import head_frame
-    from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
-    from relightanyone.model.train.run import load_run
-    from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
-
     stage2_run = Path(stage2_run)
     info_path = stage2_run / "run.json"
     if not info_path.is_file():
@@ -169,14 +167,6 @@ def load_relightable_model(stage1_run: Path, stage2_run: Path) -> RelightableMod
             "olat_dataset": str(dataset_path.resolve()),
         },
     )
-
-
-def decode_codes(model: Stage1Model, z_id: torch.Tensor, z_l: torch.Tensor) -> tuple[torch.Tensor, Gaussians]:
-    """Stage-1 decoding of explicit codes: z_id (B, D_id), z_l (B, D_l) -> vertices (B, V, 3), Gaussians."""
-    vertices = model.mesh_decoder(z_id)
-    geometry_maps = model.geometry_decoder(z_id)
-    colour_maps = model.colour_decoder(torch.cat([z_id, z_l], dim=1))
-    return vertices, assemble_gaussians(geometry_maps, colour_maps, vertices, model.binding, model.spacing)
 
 
 def locality_loss(
@@ -260,7 +250,7 @@ class Fitter:
         The one place a network turns codes into Gaussians, so another model (the single-stage baseline)
         can reuse the whole fit by overriding it together with :meth:`render`.
         """
-        return decode_codes(network, codes, self.z_l.expand(codes.shape[0], -1))
+        return network.decode(codes, self.z_l.expand(codes.shape[0], -1))
 
     def decoder_parameters(self) -> list[torch.nn.Parameter]:
         """The stage-1 weights finetuning moves: D_mesh, D_g, D_c."""
@@ -299,7 +289,6 @@ class Fitter:
     def render(self, view_index: list[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, Gaussians]:
         """Relit render of the current fit in some input views: (images (v, 3, H, W), alphas (v, 1, H, W),
         vertices, Gaussians)."""
-        from relightanyone.render.rasterize import rasterize
 
         vertices, gaussians, params, w2c, K = self.reflectance(view_index)
         positions, head_centre, preset = self.shading()
@@ -469,7 +458,7 @@ class Fitter:
     @torch.no_grad()
     def avatar(self, metadata: dict | None = None) -> FittedAvatar:
         """The fitted subject as a :class:`FittedAvatar` (decoded Gaussians, frozen stage 2, rig, lighting)."""
-        vertices, gaussians = decode_codes(self.stage1, self.z_id, self.z_l)
+        vertices, gaussians = self.stage1.decode(self.z_id, self.z_l)
         info = {
             "subject": self.views.subject,
             "dataset": self.views.dataset,

@@ -8,6 +8,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relightanyone.align.colour import read_learned_colour_matrix
+from relightanyone.format.reader import NormalizedDataset
+from relightanyone.format.schema import make_mesh_key
+
 
 @dataclass
 class FitViews:
@@ -55,10 +59,6 @@ def load_fit_views(
     camera makes a single-image fit). ``image_scale`` resizes the images (OpenCV area filter) and K.
     """
     import cv2
-
-    from relightanyone.align.colour import read_learned_colour_matrix
-    from relightanyone.format.reader import NormalizedDataset
-    from relightanyone.format.schema import make_mesh_key
 
     if image_scale <= 0:
         raise ValueError(f"image_scale must be positive, got {image_scale}")

@@ -11,7 +11,9 @@ import math
 import numpy as np
 import torch
 
+from relightanyone.align.colour import linear_to_srgb
 from relightanyone.model.networks.gaussians import Gaussians
+from relightanyone.render.rasterize import rasterize
 
 
 def render_gaussians(
@@ -22,7 +24,6 @@ def render_gaussians(
     gaussians: B samples of N Gaussians; K (B, 3, 3), w2c (B, 4, 4).
     Returns image (B, 3, H, W) linear RGB and alpha (B, 1, H, W), differentiable.
     """
-    from relightanyone.render.rasterize import rasterize
 
     batch = gaussians.means.shape[0]
     if K.shape[0] != batch or w2c.shape[0] != batch:
@@ -49,7 +50,6 @@ def render_cameras(
     gaussians: Gaussians, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int
 ) -> torch.Tensor:
     """Render one Gaussian set (batch of 1) into C cameras: K (C, 3, 3), w2c (C, 4, 4) -> (C, 3, H, W)."""
-    from relightanyone.render.rasterize import rasterize
 
     image, _, _ = rasterize(
         gaussians.means[0],
@@ -101,7 +101,6 @@ def orbit_cameras(
 
 def to_display(image: torch.Tensor) -> np.ndarray:
     """Linear (3, H, W) -> sRGB-encoded uint8 (H, W, 3) for PNGs and TensorBoard."""
-    from relightanyone.align.colour import linear_to_srgb
 
     encoded = linear_to_srgb(image.detach().clamp(0.0, 1.0).float())
     return (encoded.clamp(0.0, 1.0).permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)

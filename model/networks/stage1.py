@@ -111,7 +111,10 @@ class Stage1Model(nn.Module):
             vertices (B, V, 3) decoded mesh and the Gaussians (N per sample).
         """
         z_id = self.identity_codes[subject_index]
-        z_l = self.lighting_code(lighting_index, use_lighting)
+        return self.decode(z_id, self.lighting_code(lighting_index, use_lighting))
+
+    def decode(self, z_id: torch.Tensor, z_l: torch.Tensor) -> tuple[torch.Tensor, Gaussians]:
+        """Decode explicit codes: z_id (B, D_id), z_l (B, D_l) -> vertices (B, V, 3) and the Gaussians."""
         vertices = self.mesh_decoder(z_id)
         geometry_maps = self.geometry_decoder(z_id)
         colour_maps = self.colour_decoder(torch.cat([z_id, z_l], dim=1))

@@ -36,6 +36,7 @@ from relightanyone.model.networks.reflectance import (
     view_independent_channels,
     view_independent_output_bias,
 )
+from relightanyone.render.mesh import vertex_normals
 
 INPUT_CHANNELS = 6  # full-on colour (3) + normalized position (3)
 VIEW_CHANNELS = 3
@@ -155,7 +156,6 @@ def scatter_texels(values: torch.Tensor, binding: TexelBinding) -> torch.Tensor:
 
 def texel_mesh_normals(vertices: torch.Tensor, binding: TexelBinding) -> torch.Tensor:
     """Smooth mesh normals n̂ at every valid texel: vertices (B, V, 3) -> unit (B, N, 3)."""
-    from relightanyone.render.mesh import vertex_normals
 
     device = vertices.device
     normals = vertex_normals(vertices, binding.faces.to(device))

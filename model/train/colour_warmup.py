@@ -13,7 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.align.colour import COLOUR_ALIGNMENT_FILENAME, write_learned_colour_matrix
+from relightanyone.format.dataset_view import link_dataset_view
+from relightanyone.format.reader import load_manifest
 from relightanyone.model.networks.presets import Stage1Preset
+from relightanyone.model.train.stage1 import Stage1Config, train_stage1
 
 WARMUP_DIR = "warmup"
 
@@ -75,9 +79,6 @@ def run_colour_warmup(
     """
     import torch.distributed as dist
 
-    from relightanyone.align.colour import write_learned_colour_matrix
-    from relightanyone.model.train.stage1 import Stage1Config, train_stage1
-
     if not uncalibrated:
         raise ValueError("the colour warm-up needs at least one uncalibrated dataset (--uncalibrated NAME)")
     warmup_preset = preset.replace(iterations=preset.warmup_iterations)
@@ -94,15 +95,10 @@ def run_colour_warmup(
     metrics = train_stage1(config)
     is_main = not dist.is_initialized() or dist.get_rank() == 0
     if is_main:
-        from relightanyone.format.reader import load_manifest
-
         names = {load_manifest(Path(d)).info.name: Path(d) for d in data}
         for name, render_to_dataset in metrics["colour_matrices"].items():
             target = names[name]
             if views_dir is not None:
-                from relightanyone.align.colour import COLOUR_ALIGNMENT_FILENAME
-                from relightanyone.format.dataset_view import link_dataset_view
-
                 target = link_dataset_view(
                     target, Path(views_dir) / name, exclude=frozenset({COLOUR_ALIGNMENT_FILENAME})
                 )

@@ -19,6 +19,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relightanyone.align.colour import read_learned_colour_matrix
+from relightanyone.format.reader import NormalizedDataset
+from relightanyone.format.schema import make_mesh_key
 from relightanyone.model.train.sampling import (
     CROP_STREAM,
     choose_crop,
@@ -27,6 +30,7 @@ from relightanyone.model.train.sampling import (
     held_out_cameras,
     iteration_generator,
 )
+from relightanyone.render.mesh import load_obj
 
 FULL_ON_PATTERN = "full"
 TRAIN_SPLIT = "train"
@@ -58,7 +62,6 @@ class Stage1Data:
     def __init__(
         self, dataset_dirs: list[Path], held_out_per_subject: int, apply_learned_colour: bool = True
     ):
-        from relightanyone.format.reader import NormalizedDataset
 
         if not dataset_dirs:
             raise ValueError("no dataset given: pass at least one normalized dataset folder with --data")
@@ -84,7 +87,6 @@ class Stage1Data:
             self._meshes.append(dataset.meshes())
 
     def _check_templates(self) -> Path:
-        from relightanyone.render.mesh import load_obj
 
         paths = [d / TEMPLATE_NAME for d in self.dirs]
         missing = [str(p) for p in paths if not p.is_file()]
@@ -102,7 +104,6 @@ class Stage1Data:
 
     @staticmethod
     def _learned_matrix(dataset_dir: Path) -> np.ndarray | None:
-        from relightanyone.align.colour import read_learned_colour_matrix
 
         return read_learned_colour_matrix(dataset_dir)
 
@@ -153,7 +154,6 @@ class Stage1Data:
     def tracked_vertices(self, view: ViewRef) -> np.ndarray | None:
         """(V, 3) tracked mesh of the view's (subject, frame); the subject's first frame when that frame has
         none; None when the subject has no tracked mesh at all."""
-        from relightanyone.format.schema import make_mesh_key
 
         meshes = self._meshes[view.dataset_index]
         exact = meshes.get(make_mesh_key(view.subject, view.frame))

@@ -14,12 +14,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from relightanyone.model.networks.gaussians import Gaussians
+from relightanyone.format.reader import NormalizedDataset
+from relightanyone.model.networks.gaussians import Gaussians, TexelBinding
 from relightanyone.model.networks.presets import Stage1Preset
 from relightanyone.model.networks.render import grid, orbit_cameras, save_png, to_display
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from relightanyone.model.train.stage1 import RUN_INFO_NAME, TEMPLATE_NAME
+from relightanyone.render.mesh import load_obj
+from relightanyone.render.rasterize import rasterize
+from relightanyone.render.uv_binding import UVBinding
 
 FOREGROUND_ALPHA = 0.5
 ORBIT_ELEVATION_DEG = 10.0
@@ -58,9 +62,6 @@ class Stage1Run:
 
 def load_run(run_dir: Path) -> Stage1Run:
     """Rebuild the model of ``run_dir`` from its checkpoint, run.json and template copy."""
-    from relightanyone.model.networks.gaussians import TexelBinding
-    from relightanyone.render.mesh import load_obj
-    from relightanyone.render.uv_binding import UVBinding
 
     run_dir = Path(run_dir)
     info_path = run_dir / RUN_INFO_NAME
@@ -100,7 +101,6 @@ def subject_cameras(
 
     Cameras whose image size differs from the first one are skipped (one render call per size).
     """
-    from relightanyone.format.reader import NormalizedDataset
 
     dataset_name, subject = run.subjects[subject_index].split("/", 1)
     dataset = NormalizedDataset(run.dataset_dirs[run.datasets.index(dataset_name)])
@@ -142,7 +142,6 @@ def mean_foreground_colour(images: torch.Tensor, alphas: torch.Tensor) -> np.nda
 @torch.no_grad()
 def render_with_alpha(gaussians: Gaussians, K: np.ndarray, w2c: np.ndarray, width: int, height: int):
     """Render one Gaussian set into C cameras: (images (C, 3, H, W), alphas (C, 1, H, W))."""
-    from relightanyone.render.rasterize import rasterize
 
     image, alpha, _ = rasterize(
         gaussians.means[0],

@@ -41,6 +41,8 @@ from relightanyone.model.train.held_out import evaluate_held_out
 from relightanyone.model.train.losses import composite_over_background, offset_weight, stage1_loss
 from relightanyone.model.train.memory import estimate_training_memory, format_memory
 from relightanyone.model.train.sampling import background_colours, balanced_batch
+from relightanyone.render.mesh import load_obj
+from relightanyone.render.uv_binding import UVBinding
 
 RUN_INFO_NAME = "run.json"
 METRICS_NAME = "metrics.json"
@@ -101,8 +103,6 @@ def build_model(
     preset: Stage1Preset, data: Stage1Data, uncalibrated: tuple[str, ...], template_path: Path
 ) -> Stage1Model:
     """The stage-1 model for ``data``'s subjects and datasets, bound to the template at the preset's UV size."""
-    from relightanyone.render.mesh import load_obj
-    from relightanyone.render.uv_binding import UVBinding
 
     unknown = sorted(set(uncalibrated) - set(data.names))
     if unknown:

@@ -33,6 +33,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relightanyone.align.colour import read_learned_colour_matrix
+from relightanyone.format.reader import NormalizedDataset, load_manifest
+from relightanyone.format.schema import make_mesh_key
 from relightanyone.model.networks.gaussians import TexelBinding
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
 from relightanyone.model.networks.reflectance import (
@@ -67,6 +70,7 @@ from relightanyone.model.train.losses import (
     scale_bound_loss,
     vertex_l2,
 )
+from relightanyone.model.train.run import load_run
 from relightanyone.model.train.sampling import (
     CROP_STREAM,
     background_colours,
@@ -75,6 +79,11 @@ from relightanyone.model.train.sampling import (
     crop_intrinsics,
     iteration_generator,
 )
+from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
+from relightanyone.render.mesh import load_obj
+from relightanyone.render.sh import lambertian_transfer
+from relightanyone.render.shading import point_light_sh
+from relightanyone.render.uv_binding import UVBinding
 
 RUN_INFO_NAME = "run.json"
 METRICS_NAME = "metrics.json"
@@ -125,9 +134,6 @@ class OlatFrames:
     """
 
     def __init__(self, dataset_dir: Path, subject_names: list[str] | None = None) -> None:
-        from relightanyone.align.colour import read_learned_colour_matrix
-        from relightanyone.format.reader import NormalizedDataset
-        from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
 
         self.path = Path(dataset_dir)
         self.dataset = NormalizedDataset(self.path)
@@ -188,7 +194,6 @@ class OlatFrames:
 
     def tracked_vertices(self, view: OlatView) -> np.ndarray | None:
         """(V, 3) tracked mesh of the view's frame, else the subject's first frame, else None."""
-        from relightanyone.format.schema import make_mesh_key
 
         exact = self.meshes.get(make_mesh_key(view.subject, view.frame))
         if exact is not None:
@@ -253,8 +258,6 @@ class Stage2Trainer:
         self.start = 0
 
     def _build_stage2(self) -> None:
-        from relightanyone.format.reader import load_manifest
-        from relightanyone.model.train.run import load_run
 
         if self.config.stage1_run is None:
             raise ValueError(
@@ -286,8 +289,6 @@ class Stage2Trainer:
         self.trainable.albedo_per_colour.copy_(self.albedo_per_colour)
 
     def _build_single_stage(self) -> None:
-        from relightanyone.render.mesh import load_obj
-        from relightanyone.render.uv_binding import UVBinding
 
         if self.config.stage1_preset is None:
             raise ValueError("the single-stage baseline needs a stage-1 preset for its geometry sizes")
@@ -315,8 +316,6 @@ class Stage2Trainer:
 
     def _diffuse_factor(self, vertices: torch.Tensor, binding, rig) -> torch.Tensor:
         """(3,) mean over Gaussians of Σ_l d_lambert · L_l: the ``rig``'s diffuse light on a unit albedo."""
-        from relightanyone.render.sh import lambertian_transfer
-        from relightanyone.render.shading import point_light_sh
 
         transfer = lambertian_transfer(texel_mesh_normals(vertices, binding), self.preset.sh_order)
         rig = rig.to(self.device)

@@ -13,6 +13,7 @@ import os
 import tempfile
 from pathlib import Path
 
+from relightanyone import __version__
 from relightanyone.pipelines.dag.pipeline_file import StageSpec
 
 STAGE_RECORD_NAME = "_stage.json"
@@ -51,7 +52,6 @@ def write_attempt(output: Path, fingerprint: str) -> None:
 
 
 def package_version() -> str:
-    from relightanyone import __version__
 
     return __version__
 

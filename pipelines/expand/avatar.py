@@ -14,7 +14,9 @@ from pathlib import Path
 
 import torch
 
-from relightanyone.model.fit.avatar import decoded_avatar
+from relightanyone.model.fit.avatar import FittedAvatar, decoded_avatar
+from relightanyone.model.fit.fitter import Fitter
+from relightanyone.model.fit.views import load_fit_views
 
 __all__ = ["decoded_avatar", "fitted_avatar"]
 
@@ -37,9 +39,6 @@ def fitted_avatar(
         fit_settings: :class:`~relightanyone.model.fit.fitter.FitSettings` (iterations, learning rates, seed).
         fingerprint: hex digest of the inputs of the fit (checkpoints, source rows, settings).
     """
-    from relightanyone.model.fit.avatar import FittedAvatar
-    from relightanyone.model.fit.fitter import Fitter
-    from relightanyone.model.fit.views import load_fit_views
 
     avatar_path = Path(avatar_path)
     if avatar_path.is_file():

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from relightanyone.pipelines.expand.task import run_expand_task
+
 EXECUTORS = ("local", "ray")
 WORKER_PRELOAD = (
     "torch",
@@ -37,8 +39,6 @@ def run_expand_tasks(
     """
     from tqdm import tqdm
 
-    from relightanyone.pipelines.expand.task import run_expand_task
-
     if executor not in EXECUTORS:
         raise ValueError(f"unknown executor {executor!r}; expected one of {', '.join(EXECUTORS)}")
     if workers < 1:
@@ -63,8 +63,6 @@ def _run_pool(writer, settings, tasks, workers, bar, images_per_view) -> dict:
     import multiprocessing
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
-    from relightanyone.pipelines.expand.task import run_expand_task
-
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload(list(WORKER_PRELOAD))
     results = {}
@@ -87,7 +85,6 @@ def _run_ray(writer, settings, tasks, workers, bar, images_per_view) -> dict:
         import ray
     except ImportError:
         raise RuntimeError("the ray executor needs Ray: pip install 'relightanyone[ray]'") from None
-    from relightanyone.pipelines.expand.task import run_expand_task
 
     if not ray.is_initialized():
         ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)

@@ -8,6 +8,8 @@ from pathlib import Path
 
 from relightanyone.format.arrow_io import sha256_file
 from relightanyone.format.schema import Provenance
+from relightanyone.model.train.checkpoint import load_checkpoint
+from relightanyone.pipelines.expand.task import cache_relightable_model
 
 CHECKPOINT_FILE = "checkpoint.pt"
 
@@ -40,8 +42,6 @@ def stage2_olat_dataset(stage2: Path) -> Path:
 def load_model_early(stage1: Path, stage2: Path) -> list[str]:
     """Load the two runs together now (clear errors before any work; the in-process task reuses the model)
     and return the stage-1 subjects ("<dataset>/<subject>") in identity-code order."""
-    from relightanyone.model.train.checkpoint import load_checkpoint
-    from relightanyone.pipelines.expand.task import cache_relightable_model
 
     try:
         cache_relightable_model(Path(stage1).resolve(), Path(stage2).resolve())

@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from relightanyone.format.arrow_io import sha256_file
-from relightanyone.format.reader import NormalizedDataset
+from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import (
     MANIFEST_NAME,
     DatasetInfo,
@@ -30,6 +30,9 @@ from relightanyone.format.schema import (
     Manifest,
     fingerprint_config,
 )
+from relightanyone.format.shards import ShardWriter
+from relightanyone.model.fit.fitter import FitSettings
+from relightanyone.pipelines.expand.executors import run_expand_tasks
 from relightanyone.pipelines.expand.inputs import (
     checkpoint_sha256,
     dataset_provenance,
@@ -37,6 +40,7 @@ from relightanyone.pipelines.expand.inputs import (
     run_info,
     stage2_olat_dataset,
 )
+from relightanyone.pipelines.expand.render import envmap_pattern
 
 TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
@@ -64,7 +68,6 @@ class ExpandSettings:
     lightings_per_pass: int = 16
 
     def fit_settings(self):
-        from relightanyone.model.fit.fitter import FitSettings
 
         return FitSettings(
             inversion_iterations=self.fit_iterations[0],
@@ -164,7 +167,6 @@ def plan_expansion(
     lightings_per_pass: int = 16,
 ) -> ExpansionPlan:
     """Check the inputs (loading both runs together once) and list the tasks; renders nothing."""
-    from relightanyone.pipelines.expand.render import envmap_pattern
 
     source_data = NormalizedDataset(source)
     name = name or f"{source_data.name}-olat"
@@ -296,9 +298,6 @@ def expand_dataset(
 
     Returns a report: output, manifest counts, per-task results, whether it was already up to date.
     """
-    from relightanyone.format.reader import load_manifest
-    from relightanyone.format.shards import ShardWriter
-    from relightanyone.pipelines.expand.executors import run_expand_tasks
 
     output = plan.settings.output
     if (output / MANIFEST_NAME).is_file():

@@ -14,6 +14,9 @@ from pathlib import Path
 
 import torch
 
+from relightanyone.model.fit.avatar import prefilter_for_shading, relight_views
+from relightanyone.render.envmap import PrefilteredEnvmap, load_envmap
+
 ENVMAP_NAME = re.compile(r"[^A-Za-z0-9._-]+")
 
 
@@ -40,8 +43,6 @@ def expansion_lightings(
         rig_patterns: L pattern names (``olat-KKK`` of the OLAT dataset's ``lights.arrow``).
         envmaps: lat-long HDR files (``.exr`` / ``.hdr``).
     """
-    from relightanyone.model.fit.avatar import prefilter_for_shading
-    from relightanyone.render.envmap import PrefilteredEnvmap, load_envmap
 
     if len(rig_patterns) != len(rig):
         raise ValueError(f"{len(rig_patterns)} light pattern names for a rig of {len(rig)} lights")
@@ -77,7 +78,6 @@ def render_lightings(
     Returns:
         (P, 3, H, W) linear RGB, black background, clamped to >= 0.
     """
-    from relightanyone.model.fit.avatar import relight_views
 
     images = relight_views(
         avatar,

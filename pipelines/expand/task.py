@@ -14,12 +14,19 @@ from collections.abc import Callable
 
 import numpy as np
 
+from relightanyone.align.colour import read_learned_colour_matrix
+from relightanyone.format.codecs import encode_image
+from relightanyone.format.reader import NormalizedDataset
+from relightanyone.format.schema import MeshRow, build_image_row, make_mesh_key
+from relightanyone.model.fit.fitter import load_relightable_model
+from relightanyone.pipelines.expand.avatar import decoded_avatar, fitted_avatar
+from relightanyone.pipelines.expand.render import expansion_lightings, render_lightings
+
 _MODELS: dict[tuple[str, str], object] = {}  # loaded once per process (a worker runs many subjects)
 
 
 def cache_relightable_model(stage1, stage2):
     """The :class:`~relightanyone.model.fit.fitter.RelightableModel` of two runs, loaded once per process."""
-    from relightanyone.model.fit.fitter import load_relightable_model
 
     key = (str(stage1), str(stage2))
     if key not in _MODELS:
@@ -40,9 +47,6 @@ def seed_everything(seed: int) -> None:
 def subject_avatar(settings, task, model, source):
     """The task's avatar on the CPU: decoded (stage-1 subject) or fitted / loaded from the avatars folder."""
     import torch
-
-    from relightanyone.format.schema import make_mesh_key
-    from relightanyone.pipelines.expand.avatar import decoded_avatar, fitted_avatar
 
     frame = task.frames[0]
     if task.known:
@@ -86,12 +90,6 @@ def run_expand_task(writer, settings, task, on_images: Callable[[int], None] | N
 
 def _render_subject(writer, settings, task, on_images) -> dict:
     import torch
-
-    from relightanyone.align.colour import read_learned_colour_matrix
-    from relightanyone.format.codecs import encode_image
-    from relightanyone.format.reader import NormalizedDataset
-    from relightanyone.format.schema import MeshRow, build_image_row, make_mesh_key
-    from relightanyone.pipelines.expand.render import expansion_lightings, render_lightings
 
     start = time.perf_counter()
     seed_everything(settings.seed)

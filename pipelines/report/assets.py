@@ -13,7 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.format.preview import linear_to_srgb_preview
 from relightanyone.pipelines.report.html import slug
+from relightanyone.render.envmap import load_envmap
 
 BROWSER_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".gif", ".webp", ".avif", ".bmp", ".svg")
 HDR_SUFFIXES = (".exr", ".hdr")
@@ -34,8 +36,6 @@ def write_png(path: Path, image: np.ndarray) -> None:
 
 def hdr_to_srgb(path: Path) -> np.ndarray:
     """A lat-long or plain ``.exr`` / ``.hdr`` file -> (H, W, 3) uint8 sRGB preview."""
-    from relightanyone.format.preview import linear_to_srgb_preview
-    from relightanyone.render.envmap import load_envmap
 
     try:
         linear = load_envmap(path).permute(1, 2, 0).numpy()

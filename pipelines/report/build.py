@@ -28,6 +28,9 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
+from relightanyone.format.schema import SchemaError
+from relightanyone.format.shards import dataset_dirs
 from relightanyone.pipelines.report.assets import IMAGE_SUFFIXES, AssetStore, UnreadablePicture
 from relightanyone.pipelines.report.html import (
     Section,
@@ -41,6 +44,7 @@ from relightanyone.pipelines.report.html import (
     table,
 )
 from relightanyone.pipelines.report.metrics import metrics_tables
+from relightanyone.pipelines.report.sheets import OVERVIEW_HEADER, olat_sheets, overview_row, subject_sheet
 
 LIGHTING_GRID_CAPTION = (
     "Rows: one training subject of each dataset; columns: that subject decoded with each dataset's "
@@ -109,7 +113,6 @@ class _Builder:
 
 
 def _dataset_folders(parents: list[Path]) -> list[Path]:
-    from relightanyone.format.shards import dataset_dirs
 
     found: list[Path] = []
     for parent in parents:
@@ -119,8 +122,6 @@ def _dataset_folders(parents: list[Path]) -> list[Path]:
 
 
 def _datasets_section(builder: _Builder, inputs: ReportInputs) -> str:
-    from relightanyone.format.reader import NormalizedDataset
-    from relightanyone.pipelines.report.sheets import OVERVIEW_HEADER, overview_row, subject_sheet
 
     if not inputs.datasets and not inputs.expanded:
         return not_produced("no normalized datasets given (--datasets)")
@@ -180,9 +181,6 @@ def _lighting_section(builder: _Builder, inputs: ReportInputs) -> str:
 
 
 def _expanded_section(builder: _Builder, inputs: ReportInputs) -> str:
-    from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
-    from relightanyone.format.schema import SchemaError
-    from relightanyone.pipelines.report.sheets import olat_sheets
 
     if not inputs.expanded:
         return not_produced("no expanded datasets given (--expanded DIR)")

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.format.preview import linear_to_srgb_preview, render_contact_sheet
 from relightanyone.format.schema import MANIFEST_NAME, QUARANTINE_NAME
 
 OVERVIEW_HEADER = (
@@ -133,7 +134,6 @@ def subject_sheet(dataset, max_subjects: int, tile: int = 160) -> tuple[np.ndarr
     Each tile is the subject's first frame, ``full`` pattern (or its first pattern), middle camera, with
     the mask outlined; exposure is automatic per tile.
     """
-    from relightanyone.format.preview import render_contact_sheet
 
     subjects = dataset.subjects[:max_subjects]
     index = index_entries(dataset)
@@ -215,8 +215,6 @@ def olat_sheets(dataset, camera: str | None, max_subjects: int, tile: int = 96, 
     environment maps, ``env-<name>``) form a second sheet, each tile at its own exposure.
     """
     from tqdm import tqdm
-
-    from relightanyone.format.preview import linear_to_srgb_preview, render_contact_sheet
 
     light_names = {str(light["pattern"]): str(light["name"]) for light in dataset.lights()}
     olat_patterns = rig_patterns(dataset)

@@ -116,11 +116,11 @@ def inspect_command(path: Path, out: Path | None, samples: int, overlay: Path | 
 
 
 def _write_overlay(datasets: list, out: Path, samples: int) -> None:
-    """Reprojection overlays (``relightanyone.ingest.overlay``), one row of samples per dataset."""
+    """Reprojection overlays (``relightanyone.format.overlay``), one row of samples per dataset."""
     import cv2
     import numpy as np
 
-    from relightanyone.ingest.overlay import reprojection_overlays
+    from relightanyone.format.overlay import reprojection_overlays
 
     rows = []
     for dataset in datasets:

@@ -50,6 +50,9 @@ MESHES_NAME = "meshes.arrow"
 LIGHTS_NAME = "lights.arrow"
 INDEX_NAME = "index.arrow"
 QUARANTINE_NAME = "quarantine.jsonl"
+# Side files ingest writes beside the shards: the template mesh of meshes.arrow and its neck mask.
+TEMPLATE_NAME = "template.obj"
+NECK_MASK_NAME = "template_neck_mask.txt"
 SHARD_PATTERN = "images-{:05d}.arrow"
 
 

@@ -13,6 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.format.preview import linear_to_srgb_preview
+from relightanyone.format.reader import NormalizedDataset
+from relightanyone.format.schema import NECK_MASK_NAME, TEMPLATE_NAME
+from relightanyone.render.mesh import faces_touching, read_obj
+
 HEAD_COLOUR = (60, 220, 60)  # RGB
 NECK_COLOUR = (255, 150, 40)
 
@@ -67,10 +72,6 @@ def reprojection_overlays(
 ) -> list[np.ndarray]:
     """Overlays for ``keys`` (default: ``samples`` keys spread over the dataset) of a normalized dataset
     written by ingest (it holds ``meshes.arrow`` and ``template.obj``). Returns ``(H', W', 3)`` uint8 RGB."""
-    from relightanyone.format.preview import linear_to_srgb_preview
-    from relightanyone.format.reader import NormalizedDataset
-    from relightanyone.ingest.runner import NECK_MASK_NAME, TEMPLATE_NAME
-    from relightanyone.ingest.tracking import load_template
 
     dataset_dir = Path(dataset_dir)
     template_path = dataset_dir / TEMPLATE_NAME
@@ -78,8 +79,14 @@ def reprojection_overlays(
         raise FileNotFoundError(
             f"{template_path} is missing: only datasets written by ingest can be overlaid"
         )
-    neck = dataset_dir / NECK_MASK_NAME
-    template = load_template(template_path, neck if neck.is_file() else None)
+    vertices_template, faces = read_obj(template_path)
+    neck_path = dataset_dir / NECK_MASK_NAME
+    neck_vertices = (
+        np.loadtxt(neck_path, ndmin=1) > 0.5
+        if neck_path.is_file()
+        else np.zeros(len(vertices_template), bool)
+    )
+    neck_faces = faces_touching(neck_vertices, faces)
     dataset = NormalizedDataset(dataset_dir)
     meshes = dataset.meshes()
     if keys is None:
@@ -94,7 +101,5 @@ def reprojection_overlays(
             raise KeyError(f"{dataset_dir}: no mesh for {mesh_key} in meshes.arrow")
         vertices = np.asarray(meshes[mesh_key], dtype=np.float64).reshape(-1, 3)
         preview = linear_to_srgb_preview(image)
-        overlays.append(
-            draw_mesh_over(preview, vertices, template.faces, template.neck_faces, row.K, row.w2c)
-        )
+        overlays.append(draw_mesh_over(preview, vertices, faces, neck_faces, row.K, row.w2c))
     return overlays
