@@ -1,6 +1,6 @@
 """Ava-256 captures (D2, flat-lit) -> a :class:`DatasetPlan`.
 
-Layout read (datasets.md §1; one capture = one subject)::
+Layout read (the Ava-256 release, ``docs/ingest.md``; one capture = one subject)::
 
     {mcd}--{mct}--{sid}/decoder/                 (or the DATASHEET name m--{mcd}--{mct}--{sid}--GHS)
         camera_calibration.json                  {"KRT": [...]}: K and w2c stored transposed, mm

@@ -1,6 +1,6 @@
 """NeRSemble multi-view video captures (D4, flat-lit), release v2 and v1 -> a :class:`DatasetPlan`.
 
-Layouts read (datasets.md §3; ``SRC`` is the release root holding ``{p_id:03d}/`` folders, or one of them)::
+Layouts read (``docs/ingest.md``; ``SRC`` is the release root holding ``{p_id:03d}/`` folders, or one)::
 
     v2  {p}/calibration/camera_params.json          {"world_2_cam": {serial: 4x4}, "intrinsics": 3x3 | {serial: 3x3}}
         {p}/calibration/color_calibration.json      {serial: 3x3 or 3x4 Cheung-2004 CCM}, linear light
@@ -15,7 +15,7 @@ The version is read from the folder structure (:func:`detect`), never asked for.
 
 Conventions:
 
-* Cameras: ``render.calibration_io.from_nersemble_params`` (OpenCV world_2_cam, metres, no distortion).
+* Cameras: ``ingest.calibration.from_nersemble_params`` (OpenCV world_2_cam, metres, no distortion).
   ``intrinsics`` describe a sensor an integer factor larger than the stored images (v1's PNGs are 2x
   smaller than the 2200x3208 frames the calibration was made for): the factor is the exact one when the
   image is an integer downscale of the sensor (``width``/``height`` keys of the file, else 2200x3208),

@@ -6,8 +6,8 @@ world (already converted to OpenCV axes and metres), and the colour calibration 
 decode pixels: the shared steps in :mod:`relightanyone.ingest.runner` do that per subject, in worker
 processes, so everything here is small and picklable.
 
-The conversion from each native convention happens once, inside its adapter (DESIGN §3); the shared
-steps only see these records.
+The conversion from each native convention happens once, inside its adapter (``docs/conventions.md``);
+the shared steps only see these records.
 """
 
 from __future__ import annotations

@@ -56,7 +56,7 @@ from relightanyone.ingest.tracking import (
     shipped_tracking,
 )
 
-# Square crop side per preset (DESIGN §6: tiny/demo crops 128², paper 1024²).
+# Square crop side per preset (docs/ingest.md: tiny/demo 128², small 512², paper 1024²).
 PRESET_SIZES = {"tiny": 128, "demo": 128, "small": 512, "paper": 1024}
 CROP_MARGIN = 0.1  # of the head's projected extent, on each side
 # Shard bytes per stored pixel, image + mask, as measured by bench/results/loader.json (1024² rows).

@@ -1,6 +1,6 @@
 """Image steps every ingest adapter shares: projection, crop box, undistort+crop+resize, mesh mask.
 
-Camera conventions follow DESIGN §3: OpenCV pinhole (x right, y down, z forward), the centre of pixel
+Camera conventions (``docs/conventions.md``): OpenCV pinhole (x right, y down, z forward), the centre of pixel
 ``(u, v)`` is at ``(u, v)``; resizing by ``s`` gives ``f *= s, c = (c + 0.5) s - 0.5``; cropping at
 ``(x0, y0)`` gives ``c -= (x0, y0)``. Distortion coefficients are in OpenCV order
 ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]])``. Everything is plain numpy: ``K (3, 3)``,

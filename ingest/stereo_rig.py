@@ -1,6 +1,6 @@
 """Studio stereo rig captures (D3, flat-lit; SDFM-style, RAW + COLMAP + colour chart) -> a :class:`DatasetPlan`.
 
-There is no public release of this kind of capture (datasets.md §5), so the layout is the project's own
+There is no public release of this kind of capture, so the layout is the project's own
 (``docs/ingest.md``)::
 
     rig.json                                  optional: {"cameras", "stereo_pairs", "raw", "calibration",
@@ -12,7 +12,7 @@ There is no public release of this kind of capture (datasets.md §5), so the lay
 
 Conventions:
 
-* Cameras: ``render.calibration_io.from_colmap`` (COLMAP's pixel-centre offset of 0.5 removed, OPENCV
+* Cameras: ``ingest.calibration.from_colmap`` (COLMAP's pixel-centre offset of 0.5 removed, OPENCV
   distortion kept); a camera is named by its image's file stem. The model's world unit is the metre
   unless ``rig.json`` says ``"units": "mm"`` (or ``"cm"``); translations are converted here.
 * RAW frames are codec ``dng-raw``: the runner demosaics them to linear camera RGB with

@@ -1,7 +1,7 @@
 """The template mesh and the per-frame similarity from a dataset's native world to canonical head space.
 
-Canonical head space is the tracked mesh's frame (DESIGN §3): the template's frame, metres, the head
-never moving. For every (subject, frame) two similarities are estimated and chained::
+Canonical head space is the tracked mesh's frame (``docs/conventions.md``): the template's frame, metres,
+the head never moving. For every (subject, frame) two similarities are estimated and chained::
 
     canonical_from_native = canonical_from_tracker · tracker_from_native
 
@@ -171,7 +171,7 @@ def _native_frame(entry: dict, where: str) -> int:
 
 
 def read_vhap_subject(folder: Path) -> VhapSubject:
-    """Read ``<folder>/transforms.json`` and find ``meshes/{t:05d}.obj`` (datasets.md §6.2).
+    """Read ``<folder>/transforms.json`` and find ``meshes/{t:05d}.obj`` (VHAP's export, ``docs/cameras.md``).
 
     Cameras come from :func:`relightanyone.ingest.calibration.from_transforms_json` (OpenGL
     camera-to-world and flipped ``cy`` undone there), one per ``camera_id``.

@@ -1,10 +1,10 @@
 """Light sources: point lights (an OLAT rig, arbitrary lights) and directional lights.
 
-Conventions (DESIGN.md): positions in metres in canonical head space, intensities linear RGB. A point light's
-``intensity`` is radiant intensity: the irradiance it gives at distance ``r`` facing it is ``intensity / r**2``
-(the shading functions apply this falloff unless told not to). A directional light's ``irradiance`` is what it
-gives on a surface facing it, so an environment-map texel becomes ``radiance * solid_angle``. Directions point
-from the subject towards the light.
+Conventions (docs/conventions.md): positions in metres in canonical head space, intensities linear RGB.
+A point light's ``intensity`` is radiant intensity: the irradiance it gives at distance ``r`` facing it is
+``intensity / r**2`` (the shading functions apply this falloff unless told not to). A directional light's
+``irradiance`` is what it gives on a surface facing it, so an environment-map texel becomes
+``radiance * solid_angle``. Directions point from the subject towards the light.
 
 An OLAT rig is the ordered list of its lights; "full-on" is all of them at once; padding lights (to batch
 rigs of different sizes) have zero intensity and contribute nothing.

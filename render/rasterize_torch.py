@@ -7,7 +7,7 @@ Semantics follow gsplat 1.5.3's EWA splatting (``fully_fused_projection`` + ``ra
 - per pixel, front to back by camera-space depth: ``α = min(0.999, o·exp(-σ))``, contributions with
   ``α < 1/255`` (or ``σ < 0``) skipped, stop before the Gaussian that would take transmittance to ``≤ 1e-4``.
 
-Pixel convention (DESIGN §3): the centre of pixel ``(u, v)`` is at ``(u, v)`` in ``K``'s pixel coordinates.
+Pixel convention (docs/conventions.md): the centre of pixel ``(u, v)`` is at ``(u, v)`` in pixels of ``K``.
 gsplat puts pixel centres at ``(u + 0.5, v + 0.5)``; the culling and Jacobian-clamp limits below are those
 of gsplat evaluated with ``cx + 0.5, cy + 0.5``, so our projection equals gsplat's shifted by half a pixel.
 

@@ -1,6 +1,6 @@
 """D2: an Ava-256-like flat-lit capture (Meta Codec Avatar Studio layout).
 
-Layout written under ``<out>/ava256/`` (datasets.md §1.1), one capture folder per subject::
+Layout written under ``<out>/ava256/`` (the Ava-256 release's), one capture folder per subject::
 
     {mcd}--{mct}--{sid}/decoder/
         camera_calibration.json        {"KRT": [{cameraId, projectionModel, distortionModel, K, distortion, T}]}

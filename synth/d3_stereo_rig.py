@@ -1,4 +1,4 @@
-"""D3: an SDFM-style stereo capture rig (there is no public SDFM release; datasets.md §5).
+"""D3: an SDFM-style stereo capture rig (there is no public SDFM release).
 
 Eight cameras in four stereo pairs in front of the face, lit by four frontal flashes, writing 12-bit
 Bayer RAW. The layout under ``<out>/stereo_rig/`` is this project's choice, modelled on a studio

@@ -1,6 +1,6 @@
 """D4: a NeRSemble-v2-like capture (16 cameras, video, colour calibration file).
 
-Layout under ``<out>/nersemble/`` follows the v2 release (datasets.md §3.2)::
+Layout under ``<out>/nersemble/`` follows the v2 release::
 
     metadata_sequences.csv                            ID, wears_glasses, one column per sequence ('x' = present)
     {p_id:03d}/calibration/camera_params.json         {"world_2_cam": {serial: 4x4}, "intrinsics": 3x3}

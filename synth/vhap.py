@@ -1,4 +1,4 @@
-"""VHAP-style tracking export of a synthetic dataset (datasets.md §6.2, mesh mode).
+"""VHAP-style tracking export of a synthetic dataset (VHAP's NeRF-style export, mesh mode).
 
 For every subject of a dataset it writes ``tracking/<dataset>/<subject>/``::
 

@@ -38,7 +38,7 @@ class FitViews:
 
 
 def scale_intrinsics(K: np.ndarray, scale: float) -> np.ndarray:
-    """K (3, 3) of an image resized by ``scale`` (DESIGN: ``f *= s``, ``c = (c + 0.5) s − 0.5``)."""
+    """K (3, 3) of an image resized by ``scale`` (the half-pixel rule of docs/conventions.md)."""
     scaled = np.array(K, dtype=np.float64, copy=True)
     scaled[:2, :2] *= scale
     scaled[:2, 2] = (scaled[:2, 2] + 0.5) * scale - 0.5

@@ -6,7 +6,7 @@ Both the stage-2 UNet and the single-stage baseline predict two UV maps per samp
   for every coefficient), roughness σ (1);
 * view-dependent, 4 channels: specular visibility v (1), normal residual δn (3).
 
-Activations follow RGCA (``rgca_reference.md`` §1.6): ``ρ = softplus``, ``σ = max(0.1 e^x, 0.01)``,
+Activations follow RGCA (``docs/shading.md``): ``ρ = softplus``, ``σ = max(0.1 e^x, 0.01)``,
 ``v = sigmoid``, ``n = normalize(n̂ + δn)``. The transfer is predicted as a residual over the unshadowed
 Lambertian transfer of the mesh normal n̂ (``render.sh.lambertian_transfer``), so an untrained decoder
 already shades like a diffuse surface; the residual learns shadowing and interreflection.

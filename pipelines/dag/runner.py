@@ -172,7 +172,7 @@ def _find_cycle(remaining: dict[str, set[str]]) -> list[str]:
 
 
 def load_pipeline(path: Path | str, overrides: dict[str, str] | None = None) -> Pipeline:
-    """Parse and check the pipeline file at ``path`` (see ``yaml_io`` for the format)."""
+    """Parse and check the pipeline file at ``path`` (see ``pipeline_file`` for the format)."""
     return build_pipeline(parse_pipeline(path, overrides))
 
 

@@ -1,6 +1,6 @@
 """Open a report in headless Chromium and read back whether every picture decoded.
 
-The page's inline script (``report_html.IMAGE_CHECK_SCRIPT``) writes ``data-images-loaded``,
+The page's inline script (``html.IMAGE_CHECK_SCRIPT``) writes ``data-images-loaded``,
 ``data-images-total`` and ``data-images-missing`` onto ``<body>`` after the load event; ``--dump-dom``
 prints the DOM once the virtual time budget has run out, so those attributes are in the dump. The
 browser runs with a throw-away profile, no network services and no GPU.
