@@ -171,7 +171,7 @@ def _native_frame(entry: dict, where: str) -> int:
 
 
 def read_vhap_subject(folder: Path) -> VhapSubject:
-    """Read ``<folder>/transforms.json`` and find ``meshes/{t:05d}.obj`` (VHAP's export, ``docs/cameras.md``).
+    """Read ``<folder>/transforms.json`` and find ``meshes/{t:05d}.obj`` (VHAP's export, ``docs/ingest.md``).
 
     Cameras come from :func:`relightanyone.ingest.calibration.from_transforms_json` (OpenGL
     camera-to-world and flipped ``cy`` undone there), one per ``camera_id``.

@@ -1,9 +1,10 @@
 """relightanyone: relightable Gaussian head avatars from many multi-view capture datasets.
 
 The top-level folders of the source tree are imported as ``relightanyone.<folder>``:
-``format`` (the normalized dataset), ``render`` (cameras, rasterizer, shading), ``align`` (colour and
-geometry maths), ``ingest`` (one adapter per native layout), ``model`` (stage 1, stage 2, fitting),
-``pipelines`` (DAG runner, expansion, report) and ``synth`` (the ground-truth world).
+``render`` (cameras, rasterizer, shading), ``align`` (colour and geometry maths), ``ingest`` (one adapter
+per native layout), ``model`` (stage 1, stage 2, fitting), ``evaluation`` (scores against the synthetic
+world), ``pipelines`` (DAG runner, expansion, report) and ``synth`` (the ground-truth world); ``format``
+(the normalized dataset) lives in this package. ``docs/architecture.md`` describes the layers.
 """
 
 from importlib.metadata import PackageNotFoundError, version
