@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from relightanyone.render.errors import FileFormatError
+
 with warnings.catch_warnings():
     # colour-science warns once that matplotlib (plotting only) is missing.
     warnings.simplefilter("ignore")
@@ -226,12 +228,12 @@ def read_nersemble_v1_affine(path: str | os.PathLike) -> np.ndarray:
     try:
         A = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: cannot read NeRSemble colour affine ({exc})") from exc
+        raise FileFormatError(f"{path}: cannot read NeRSemble colour affine ({exc})") from exc
     A = np.asarray(A, dtype=np.float64)
     if A.ndim != 2 or A.shape[0] < 3 or A.shape[1] < 4:
-        raise ValueError(f"{path}: NeRSemble colour affine must be at least 3×4, got shape {A.shape}")
+        raise FileFormatError(f"{path}: NeRSemble colour affine must be at least 3×4, got shape {A.shape}")
     if not np.all(np.isfinite(A[:3, :4])):
-        raise ValueError(f"{path}: NeRSemble colour affine contains NaN or infinite values")
+        raise FileFormatError(f"{path}: NeRSemble colour affine contains NaN or infinite values")
     return A[:3, :4].copy()
 
 
@@ -260,16 +262,18 @@ def read_faceolat_colour_matrix(path: str | os.PathLike) -> tuple[np.ndarray, np
             warnings.simplefilter("ignore")  # numpy warns on empty files; we report below
             values = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except ValueError as exc:
-        raise ValueError(f"{path}: not a whitespace-separated numeric 4×4 matrix ({exc})") from exc
+        raise FileFormatError(f"{path}: not a whitespace-separated numeric 4×4 matrix ({exc})") from exc
     if values.shape != (4, 4):
-        raise ValueError(f"{path}: expected a 4×4 colour matrix, got shape {values.shape}")
+        raise FileFormatError(f"{path}: expected a 4×4 colour matrix, got shape {values.shape}")
     if not np.all(np.isfinite(values)):
-        raise ValueError(f"{path}: colour matrix contains NaN or infinite values")
+        raise FileFormatError(f"{path}: colour matrix contains NaN or infinite values")
     if not np.allclose(values[3], [0.0, 0.0, 0.0, 1.0]):
-        raise ValueError(f"{path}: last row of the colour matrix must be '0 0 0 1', got {values[3].tolist()}")
+        raise FileFormatError(
+            f"{path}: last row of the colour matrix must be '0 0 0 1', got {values[3].tolist()}"
+        )
     M, black = values[:3, :3].copy(), values[:3, 3].copy()
     if abs(np.linalg.det(M)) < 1e-9:
-        raise ValueError(f"{path}: the 3×3 colour matrix is singular")
+        raise FileFormatError(f"{path}: the 3×3 colour matrix is singular")
     return M, black
 
 
@@ -295,22 +299,24 @@ def read_nersemble_colour_calibration(
         try:
             data = json.loads(path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+            raise FileFormatError(f"{path}: not valid JSON ({exc})") from exc
     if not isinstance(data, Mapping) or not data:
-        raise ValueError(f"{source}: expected a non-empty JSON object mapping camera serial -> CCM")
+        raise FileFormatError(f"{source}: expected a non-empty JSON object mapping camera serial -> CCM")
     result: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for serial in sorted(data, key=str):
         try:
             ccm = np.asarray(data[serial], dtype=np.float64)
         except (TypeError, ValueError) as exc:
-            raise ValueError(f"{source}: CCM of camera {serial} is not a numeric matrix ({exc})") from exc
+            raise FileFormatError(
+                f"{source}: CCM of camera {serial} is not a numeric matrix ({exc})"
+            ) from exc
         if ccm.shape not in ((3, 3), (3, 4)):
-            raise ValueError(
+            raise FileFormatError(
                 f"{source}: CCM of camera {serial} has shape {ccm.shape}; only 3×3 and 3×4 (affine) "
                 "Cheung-2004 matrices have a linear form"
             )
         if not np.all(np.isfinite(ccm)):
-            raise ValueError(f"{source}: CCM of camera {serial} contains NaN or infinite values")
+            raise FileFormatError(f"{source}: CCM of camera {serial} contains NaN or infinite values")
         offset = ccm[:, 3].copy() if ccm.shape[1] == 4 else np.zeros(3)
         result[str(serial)] = (ccm[:, :3].copy(), offset)
     return result
@@ -459,15 +465,17 @@ def read_learned_colour_matrix(dataset_dir: str | os.PathLike) -> np.ndarray | N
     try:
         document = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc}); delete it and re-run colour alignment") from exc
+        raise FileFormatError(
+            f"{path}: not valid JSON ({exc}); delete it and re-run colour alignment"
+        ) from exc
     if not isinstance(document, dict) or document.get("format") != COLOUR_ALIGNMENT_FORMAT:
-        raise ValueError(f"{path}: field 'format' must be {COLOUR_ALIGNMENT_FORMAT!r}")
+        raise FileFormatError(f"{path}: field 'format' must be {COLOUR_ALIGNMENT_FORMAT!r}")
     if document.get("version") != COLOUR_ALIGNMENT_VERSION:
-        raise ValueError(
+        raise FileFormatError(
             f"{path}: unsupported version {document.get('version')!r} (this toolkit reads "
             f"{COLOUR_ALIGNMENT_VERSION})"
         )
     try:
         return _as_matrix(document.get("matrix"), (3, 3), "field 'matrix'")
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"{path}: {exc}") from exc
+        raise FileFormatError(f"{path}: {exc}") from exc

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from relightanyone.align.colour import read_learned_colour_matrix
+from relightanyone.errors import InputError
 from relightanyone.evaluation.truth import (
     NativeCamera,
     WorldAnswers,
@@ -186,11 +187,11 @@ def answer_frame(
     native = answers.cameras(world_dataset)
     rows = [dataset.row(k) for k in dataset.select(subjects=subject, patterns="full")]
     if not rows:
-        raise ValueError(f"{dataset.path}: subject {subject!r} has no full-on rows")
+        raise InputError(f"{dataset.path}: subject {subject!r} has no full-on rows")
     frame = min(r.frame for r in rows)
     rows = [r for r in rows if r.frame == frame and r.camera in native]
     if not rows:
-        raise ValueError(
+        raise InputError(
             f"{dataset.path}: no camera of subject {subject!r} is among world dataset {world_dataset!r}'s cameras"
         )
     pairs = [(native[r.camera].w2c, r.w2c) for r in rows]

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import torch
 
+from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.model.fit.avatar import check_pinhole_cameras
 from relightanyone.model.fit.fitter import FitSettings, Fitter
@@ -59,7 +60,7 @@ def load_single_stage_run(run: str | Path) -> SingleStageRun:
         raise FileNotFoundError(f"{checkpoint_path}: not a trained single-stage run (no checkpoint)")
     checkpoint = load_checkpoint(checkpoint_path)
     if not checkpoint.get("single_stage"):
-        raise ValueError(f"{run}: a stage-2 run, not a single-stage baseline (trained with --single-stage)")
+        raise InputError(f"{run}: a stage-2 run, not a single-stage baseline (trained with --single-stage)")
     info = json.loads((run / "run.json").read_text())
     stage1_preset = Stage1Preset.from_json(checkpoint["stage1_preset"])
     preset = Stage2Preset.from_json(checkpoint["preset"])
@@ -77,7 +78,7 @@ def load_single_stage_run(run: str | Path) -> SingleStageRun:
     dataset_path = Path(info["dataset"]["path"])
     rows = NormalizedDataset(dataset_path).lights()
     if not rows:
-        raise ValueError(f"{dataset_path}: lights.arrow has no rows; the baseline fit needs the OLAT rig")
+        raise InputError(f"{dataset_path}: lights.arrow has no rows; the baseline fit needs the OLAT rig")
     columns = {name: [row[name] for row in rows] for name in rows[0]}
     rig = olat_rig_from_table(columns, source=str(dataset_path / "lights.arrow"))
     full_on_rig = full_on_rig_from_table(columns, rig, source=str(dataset_path / "lights.arrow"))

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relightanyone.errors import InputError
 from relightanyone.evaluation.cases import (
     EvalView,
     LightCase,
@@ -114,7 +115,7 @@ def subject_cameras(dataset_dir: Path, subject: str, limit: int | None) -> tuple
     dataset = NormalizedDataset(dataset_dir)
     rows = [dataset.row(k) for k in dataset.select(subjects=subject, patterns="full")]
     if not rows:
-        raise ValueError(f"{dataset.path}: subject {subject!r} has no full-on rows to fit")
+        raise InputError(f"{dataset.path}: subject {subject!r} has no full-on rows to fit")
     frame = min(r.frame for r in rows)
     rows = sorted((r for r in rows if r.frame == frame), key=lambda r: r.camera)
     rows = [rows[i] for i in evenly_spread(len(rows), limit)]
@@ -236,7 +237,7 @@ class Evaluation:
         for world_name, path in self.inputs.datasets.items():
             if NormalizedDataset(path).name == self.model.olat_dataset:
                 return world_name
-        raise ValueError(
+        raise InputError(
             f"stage-2 run {self.inputs.stage2} was trained on dataset {self.model.olat_dataset!r}, which is "
             f"not among the evaluated datasets {sorted(self.inputs.datasets)}; pass it with --data"
         )
@@ -290,7 +291,7 @@ class Evaluation:
                     for view in case.views:
                         view.image = view.image * np.asarray(scale, dtype=np.float32)
             return cases, "world answers (warped into the row crops)"
-        raise ValueError(f"no OLAT truth for {world_name}/{subject}: pass the world (--world)")
+        raise InputError(f"no OLAT truth for {world_name}/{subject}: pass the world (--world)")
 
     def _row_views(self, world_name: str, subject: str, cameras: list[str]) -> list[EvalView]:
 
@@ -407,7 +408,7 @@ class Evaluation:
             if world_name == self.olat_world or dataset.manifest.info.kind != "flat":
                 continue
             if dataset.name not in stage1_names:
-                raise ValueError(
+                raise InputError(
                     f"{path}: dataset {dataset.name!r} is not in stage-1 run {self.inputs.stage1} "
                     f"({stage1_names}); the ablation needs its lighting code"
                 )

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.errors import InputError
 from relightanyone.model.fit.views import scale_intrinsics
 from relightanyone.render.envmap import load_envmap
 from relightanyone.synth.world import render_subject_olat
@@ -72,7 +73,7 @@ class WorldAnswers:
     def test_subjects(self, dataset: str) -> list[str]:
         """Held-out subjects of a world dataset (``answers/splits.json``)."""
         if dataset not in self.splits:
-            raise ValueError(f"{self.root / 'splits.json'}: no dataset {dataset!r}; it has {self.datasets}")
+            raise InputError(f"{self.root / 'splits.json'}: no dataset {dataset!r}; it has {self.datasets}")
         return sorted(s for s, split in self.splits[dataset].items() if split == "test")
 
     def cameras(self, dataset: str) -> dict[str, NativeCamera]:
@@ -95,7 +96,7 @@ class WorldAnswers:
                     for name, c in data["cameras"].items()
                 }
             except KeyError as error:
-                raise ValueError(f"{path}: camera entry lacks field {error}") from error
+                raise InputError(f"{path}: camera entry lacks field {error}") from error
         return self._cameras[dataset]
 
     def head_pose(self, dataset: str, subject: str, frame: int) -> np.ndarray:
@@ -236,7 +237,7 @@ def match_lights(positions: np.ndarray, rig_positions: np.ndarray) -> tuple[list
     spacing[np.diag_indices_from(spacing)] = np.inf
     tolerance = 0.25 * float(spacing.min()) if len(rig_positions) > 1 else np.inf
     if worst > tolerance or len(set(nearest.tolist())) != len(nearest):
-        raise ValueError(
+        raise InputError(
             f"answer lights do not match the model's OLAT rig (largest distance {worst:.3f} m, tolerance "
             f"{tolerance:.3f} m); is the stage-2 run trained on this world's D1 dataset?"
         )
@@ -247,7 +248,7 @@ def match_world_dataset(answers: WorldAnswers, camera_names: set[str], source: s
     """The world dataset whose truth cameras include every camera of a normalized dataset."""
     found = [d for d in answers.datasets if camera_names <= set(answers.cameras(d))]
     if len(found) != 1:
-        raise ValueError(
+        raise InputError(
             f"{source}: cannot tell which world dataset it was ingested from (cameras "
             f"{sorted(camera_names)[:4]}... match {found or 'none'} of {answers.datasets}); "
             "name it explicitly as --data d1=DIR"

@@ -114,13 +114,13 @@ def read_frame_list(path: Path) -> list[tuple[str, int]]:
         raise LayoutError(f"{path}: frame list not found") from None
     rows = list(csv.DictReader(io.StringIO(text)))
     if not rows or not {"seg_id", "frame_id"} <= set(rows[0]):
-        raise ValueError(f"{path}: expected a header 'seg_id,frame_id' and at least one row")
+        raise LayoutError(f"{path}: expected a header 'seg_id,frame_id' and at least one row")
     out = []
     for line, row in enumerate(rows, start=2):
         try:
             out.append((row["seg_id"], int(row["frame_id"])))
         except (TypeError, ValueError):
-            raise ValueError(
+            raise LayoutError(
                 f"{path}: line {line}: frame_id {row.get('frame_id')!r} is not an integer"
             ) from None
     return out

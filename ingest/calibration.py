@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from relightanyone.errors import InputError
 from relightanyone.render.camera import Cameras
 
 # Full-sensor size of the Ava-256 / Goliath rig (width, height); the Ava loaders hard-code it.
@@ -32,7 +33,7 @@ ROTATION_TOLERANCE = 1e-4
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
-class CalibrationError(ValueError):
+class CalibrationError(InputError):
     """A calibration file is malformed; the message names the file, the field and what is wrong."""
 
     def __init__(self, path: str | Path, field: str, problem: str):
@@ -441,7 +442,7 @@ def downsample_factor(K_sensor: np.ndarray, image_size: tuple[int, int], sensor_
     implied = (2.0 * centre + 1.0) / np.array([width, height])  # sensor size / image size per axis
     factor = int(round(float(implied.mean())))
     if factor < 1 or abs(implied.mean() - factor) > FACTOR_TOLERANCE or np.abs(implied - factor).max() > 0.5:
-        raise ValueError(
+        raise InputError(
             f"images are {width}x{height}, which is no integer downscale of the {sensor_size[0]}x{sensor_size[1]} sensor, "
             f"and the principal points imply factors {implied.round(2).tolist()}"
         )

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from relightanyone.align.colour import apply_ccm, gamma_to_linear, linear_to_srgb, srgb_to_linear
+from relightanyone.errors import InputError
 from relightanyone.ingest.records import ColourCalibration, ImageRef
 
 DISPLAY_CODECS = {"avif-srgb": "srgb", "png-srgb": "srgb", "jpg-srgb": "srgb", "mp4-frame": "srgb"}
@@ -39,7 +40,7 @@ GAMMA22_CODECS = ("avif-gamma22",)
 LINEAR_CODE_CODECS = ("avif-linear", "png-linear")
 
 
-class DecodeError(ValueError):
+class DecodeError(InputError):
     """A native image cannot be read; the message names the file (and member or frame) and why."""
 
 

@@ -14,6 +14,7 @@ import threading
 from collections.abc import Callable, Sequence
 from functools import partial
 
+from relightanyone.errors import DependencyError
 from relightanyone.ingest.subject_task import run_subject_task
 
 EXECUTORS = ("local", "ray")
@@ -200,7 +201,7 @@ def _map_ray(function, items, order, workers, on_done) -> dict:
     try:
         import ray
     except ImportError:
-        raise RuntimeError("the ray executor needs Ray: pip install 'relightanyone[ray]'") from None
+        raise DependencyError("the ray executor needs Ray: pip install 'relightanyone[ray]'") from None
 
     if not ray.is_initialized():
         ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)

@@ -96,7 +96,7 @@ def _load_json(path: Path, what: str):
     except FileNotFoundError:
         raise LayoutError(f"{path}: {what} not found") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise ValueError(f"{path}: {what} is not valid JSON ({error})") from None
+        raise LayoutError(f"{path}: {what} is not valid JSON ({error})") from None
 
 
 def read_light_metadata(path: str | Path) -> LightRig:
@@ -108,20 +108,20 @@ def read_light_metadata(path: str | Path) -> LightRig:
     path = Path(path)
     data = _load_json(path, "light pattern metadata")
     if not isinstance(data, dict) or "light_positions" not in data or "light_patterns" not in data:
-        raise ValueError(f"{path}: expected an object with 'light_positions' and 'light_patterns'")
+        raise LayoutError(f"{path}: expected an object with 'light_positions' and 'light_patterns'")
     try:
         positions = np.asarray(data["light_positions"], dtype=np.float64)
     except (TypeError, ValueError):
-        raise ValueError(f"{path}: field 'light_positions' is not a list of [x, y, z]") from None
+        raise LayoutError(f"{path}: field 'light_positions' is not a list of [x, y, z]") from None
     if positions.ndim != 2 or positions.shape[1] != 3 or len(positions) == 0:
-        raise ValueError(f"{path}: field 'light_positions' must be (L, 3), got shape {positions.shape}")
+        raise LayoutError(f"{path}: field 'light_positions' must be (L, 3), got shape {positions.shape}")
     if not np.isfinite(positions).all():
-        raise ValueError(f"{path}: field 'light_positions' contains NaN or infinity")
+        raise LayoutError(f"{path}: field 'light_positions' contains NaN or infinity")
     count = len(positions)
     patterns = data["light_patterns"]
     if not isinstance(patterns, list) or len(patterns) != count + 1:
         found = len(patterns) if isinstance(patterns, list) else type(patterns).__name__
-        raise ValueError(
+        raise LayoutError(
             f"{path}: field 'light_patterns' must hold {count + 1} patterns (full + one per light), got {found}"
         )
     durations = []
@@ -130,22 +130,22 @@ def read_light_metadata(path: str | Path) -> LightRig:
         try:
             pairs = np.asarray(pattern["light_index_durations"], dtype=np.float64).reshape(-1, 2)
         except (TypeError, ValueError, KeyError):
-            raise ValueError(
+            raise LayoutError(
                 f"{path}: field '{field}' is missing or not a list of [light, duration]"
             ) from None
         if not np.isfinite(pairs).all() or (pairs[:, 1] <= 0).any():
-            raise ValueError(f"{path}: field '{field}' needs finite positive durations")
+            raise LayoutError(f"{path}: field '{field}' needs finite positive durations")
         durations.append(pairs)
     full = durations[0]
     if sorted(full[:, 0].astype(int).tolist()) != list(range(count)):
-        raise ValueError(f"{path}: pattern 0 must be full-on (light every one of the {count} lights once)")
+        raise LayoutError(f"{path}: pattern 0 must be full-on (light every one of the {count} lights once)")
     full_durations = np.zeros(count)
     full_durations[full[:, 0].astype(int)] = full[:, 1]
     olat_durations = np.zeros(count)
     for k in range(1, count + 1):
         pairs = durations[k]
         if len(pairs) != 1 or int(pairs[0, 0]) != k - 1:
-            raise ValueError(
+            raise LayoutError(
                 f"{path}: pattern {k} must light light {k - 1} alone (OLAT k -> light k-1), got lights "
                 f"{pairs[:, 0].astype(int).tolist()}"
             )
@@ -166,7 +166,7 @@ def read_pattern_schedule(path: str | Path, pattern_count: int) -> dict[int, int
     path = Path(path)
     data = _load_json(path, "light pattern schedule")
     if not isinstance(data, list) or not data:
-        raise ValueError(f"{path}: expected a non-empty list of [frame, pattern] pairs")
+        raise LayoutError(f"{path}: expected a non-empty list of [frame, pattern] pairs")
     schedule: dict[int, int] = {}
     for index, entry in enumerate(data):
         if (
@@ -174,12 +174,12 @@ def read_pattern_schedule(path: str | Path, pattern_count: int) -> dict[int, int
             or len(entry) != 2
             or not all(isinstance(v, int) and not isinstance(v, bool) for v in entry)
         ):
-            raise ValueError(f"{path}: entry {index} must be [frame, pattern] integers, got {entry!r}")
+            raise LayoutError(f"{path}: entry {index} must be [frame, pattern] integers, got {entry!r}")
         frame, pattern = entry
         if frame in schedule:
-            raise ValueError(f"{path}: frame {frame} is listed twice (entry {index})")
+            raise LayoutError(f"{path}: frame {frame} is listed twice (entry {index})")
         if not 0 <= pattern < pattern_count:
-            raise ValueError(f"{path}: entry {index}: pattern {pattern} is not in 0..{pattern_count - 1}")
+            raise LayoutError(f"{path}: entry {index}: pattern {pattern} is not in 0..{pattern_count - 1}")
         schedule[frame] = pattern
     return schedule
 

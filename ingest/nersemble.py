@@ -136,14 +136,14 @@ def video_info(path: Path) -> tuple[int, int, int]:
     try:
         with av.open(str(path)) as container:
             if not container.streams.video:
-                raise ValueError(f"{path}: holds no video stream")
+                raise LayoutError(f"{path}: holds no video stream")
             stream = container.streams.video[0]
             count = int(stream.frames)
             if count <= 0:  # containers without a frame count: count the packets (no decoding)
                 count = sum(1 for packet in container.demux(stream) if packet.size)
             return int(stream.codec_context.width), int(stream.codec_context.height), count
     except (av.error.FFmpegError, OSError) as error:
-        raise ValueError(f"{path}: not a readable video ({error})") from None
+        raise LayoutError(f"{path}: not a readable video ({error})") from None
 
 
 def image_size(path: Path) -> tuple[int, int]:
@@ -154,7 +154,7 @@ def image_size(path: Path) -> tuple[int, int]:
         with Image.open(path) as image:
             return image.size
     except (OSError, ValueError) as error:
-        raise ValueError(f"{path}: not a readable image ({error})") from None
+        raise LayoutError(f"{path}: not a readable image ({error})") from None
 
 
 def scale_factor(K_sensor: np.ndarray, size: tuple[int, int], calibration: dict) -> int:

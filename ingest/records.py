@@ -12,9 +12,13 @@ the shared steps only see these records.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
+
+from relightanyone.errors import InputError
 
 # How the bytes of an ImageRef are turned into linear float RGB (H, W, 3), before colour calibration.
 CODECS = (
@@ -30,7 +34,7 @@ CODECS = (
 )
 
 
-class LayoutError(ValueError):
+class LayoutError(InputError):
     """A native dataset folder does not have the layout an adapter reads; the message names what is missing."""
 
 
@@ -188,3 +192,14 @@ class AdapterOptions:
 
     def split_of(self, subject: str) -> str:
         return "test" if subject in self.test_subjects else "train"
+
+
+def published_test_subjects(path: Path) -> tuple[str, ...]:
+    """The held-out subjects of a published protocol file, JSON ``{"subject": "train" | "test"}``, sorted."""
+    try:
+        splits = json.loads(Path(path).read_text())
+    except ValueError as error:
+        raise InputError(f"{path}: not valid JSON ({error})") from None
+    if not isinstance(splits, dict) or not all(isinstance(v, str) for v in splits.values()):
+        raise InputError(f'{path}: expected a JSON object {{"subject": "train" | "test"}}')
+    return tuple(sorted(subject for subject, split in splits.items() if split == "test"))

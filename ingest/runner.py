@@ -32,6 +32,7 @@ from relightanyone.align.geometry import (
     lights_to_canonical,
     similarity,
 )
+from relightanyone.errors import InputError
 from relightanyone.format.arrow_io import atomic_write_bytes
 from relightanyone.format.codecs import DEFAULT_IMAGE_ENCODING
 from relightanyone.format.schema import (
@@ -165,7 +166,7 @@ def plan_tasks(
     ]
     names = [t.task for t in tasks]
     if len(set(names)) != len(names):
-        raise ValueError(f"{plan.source_root}: two subjects share a name; subject names must be unique")
+        raise InputError(f"{plan.source_root}: two subjects share a name; subject names must be unique")
     return tasks
 
 
@@ -302,7 +303,7 @@ def prepare(
     if preset not in PRESET_SIZES:
         raise ValueError(f"unknown preset {preset!r}; expected one of {', '.join(PRESET_SIZES)}")
     if tracking_dir is None and not any(s.meshes for s in plan.subjects):
-        raise ValueError(
+        raise InputError(
             f"{plan.source_root}: the {plan.layout} layout ships no tracked meshes; pass --tracking DIR "
             "(a VHAP export with <subject>/transforms.json)"
         )

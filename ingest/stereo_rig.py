@@ -74,9 +74,9 @@ def read_rig(src: Path) -> dict:
     try:
         rig = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise ValueError(f"{path}: not valid JSON ({error})") from None
+        raise LayoutError(f"{path}: not valid JSON ({error})") from None
     if not isinstance(rig, dict):
-        raise ValueError(f"{path}: expected a JSON object")
+        raise LayoutError(f"{path}: expected a JSON object")
     return rig
 
 
@@ -90,7 +90,7 @@ def chart_pattern(rig: dict, where: str = RIG_FILE) -> str:
     chart = rig.get("colour_chart", {})
     pattern = chart.get("frames", DEFAULT_CHART_FRAMES) if isinstance(chart, dict) else DEFAULT_CHART_FRAMES
     if "{camera}" not in str(pattern):
-        raise ValueError(f"{where}: field 'colour_chart.frames' must contain '{{camera}}', got {pattern!r}")
+        raise LayoutError(f"{where}: field 'colour_chart.frames' must contain '{{camera}}', got {pattern!r}")
     return str(pattern)
 
 
@@ -98,7 +98,7 @@ def metres_per_unit(rig: dict, where: str = RIG_FILE) -> float:
     """Metres per unit of the COLMAP model's world (``rig.json`` ``units``, metres by default)."""
     units = str(rig.get("units", "m"))
     if units not in UNITS_TO_METRES:
-        raise ValueError(f"{where}: field 'units' must be one of {sorted(UNITS_TO_METRES)}, got {units!r}")
+        raise LayoutError(f"{where}: field 'units' must be one of {sorted(UNITS_TO_METRES)}, got {units!r}")
     return UNITS_TO_METRES[units]
 
 

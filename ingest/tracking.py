@@ -33,6 +33,7 @@ from relightanyone.align.geometry import (
     umeyama,
     w2c_to_canonical,
 )
+from relightanyone.errors import InputError
 from relightanyone.ingest.calibration import from_transforms_json
 from relightanyone.render.mesh import faces_touching, read_obj, read_obj_vertices
 
@@ -41,7 +42,7 @@ TEMPLATE_NAMES = ("template.obj", "template/template.obj")
 MIN_SHARED_CAMERAS = 3
 
 
-class AlignmentError(ValueError):
+class AlignmentError(InputError):
     """A frame cannot be brought into canonical space; the message names the subject, frame and cause."""
 
 
@@ -103,14 +104,14 @@ def load_template(path: Path, neck_mask_path: Path | None = None) -> Template:
 def _load_template(path: Path, neck_mask_path: Path | None, signature: tuple) -> Template:
     vertices, faces = read_obj(path)
     if faces.size == 0:
-        raise ValueError(f"{path}: the template has no faces")
+        raise InputError(f"{path}: the template has no faces")
     if neck_mask_path is None:
         neck_mask_path = next((path.parent / n for n in NECK_MASK_NAMES if (path.parent / n).is_file()), None)
     neck_vertices = np.zeros(len(vertices), dtype=bool)
     if neck_mask_path is not None:
         values = np.loadtxt(neck_mask_path, dtype=np.float64, ndmin=1)
         if values.shape != (len(vertices),):
-            raise ValueError(
+            raise InputError(
                 f"{neck_mask_path}: neck mask has {values.size} entries for {len(vertices)} template vertices"
             )
         neck_vertices = values > 0.5
@@ -167,7 +168,7 @@ def _native_frame(entry: dict, where: str) -> int:
         return int(digits)
     if "timestep_index" in entry:
         return int(entry["timestep_index"])
-    raise ValueError(f"{where}: frame has no timestep_index_original, timestep_id or timestep_index")
+    raise InputError(f"{where}: frame has no timestep_index_original, timestep_id or timestep_index")
 
 
 def read_vhap_subject(folder: Path) -> VhapSubject:

@@ -1,6 +1,10 @@
-"""Model commands: ``train stage1`` and ``render stage1``.
+"""Model commands: ``align-colour``, ``train stage1|stage2``, ``render stage1``, ``fit``, ``relight`` and
+``export``.
 
-Heavy imports (torch, the model) happen inside the commands so ``relightanyone --help`` stays fast.
+Only click declarations and thin bodies live here; the work is done by the library functions they call
+(:mod:`relightanyone.model.train`, :mod:`relightanyone.model.fit`). torch and the model are imported
+inside the command bodies, so that ``relightanyone --help`` stays instant; option values are parsed by
+pure-Python functions (:mod:`relightanyone.model.fit.option_values`) before anything heavy loads.
 """
 
 from __future__ import annotations
@@ -10,9 +14,89 @@ from pathlib import Path
 
 import click
 
-from relightanyone.model.avatar_cli import COMMANDS as AVATAR_COMMANDS
+from relightanyone.cli_options import (
+    ANY_PATH,
+    EXISTING_FOLDER,
+    device_option,
+    options,
+    out_option,
+    parsed_by,
+    preset_option,
+    seed_option,
+    threads_option,
+)
+from relightanyone.model.fit.option_values import parse_exposure, parse_point_lights, parse_triple
 
-PRESET_NAMES = ("tiny", "demo", "small", "paper")
+MODEL_PRESET_OPTION = preset_option("tiny", "Model size and schedule.")
+ITERATIONS_OPTION = click.option(
+    "--iterations", type=int, default=None, help="Override the preset's iterations."
+)
+WARMUP_ITERATIONS_OPTION = click.option(
+    "--warmup-iterations", type=int, default=None, help="Override the preset's colour warm-up iterations."
+)
+BATCH_SIZE_OPTION = click.option(
+    "--batch-size", type=int, default=None, help="Override the preset's batch size (per process)."
+)
+EVAL_VIEWS_OPTION = click.option(
+    "--eval-views", type=int, default=None, help="Held-out views per dataset to score (default: all)."
+)
+RESUME_OPTION = click.option(
+    "--resume/--no-resume",
+    default=True,
+    show_default=True,
+    help="Continue from RUN/checkpoint.pt when present.",
+)
+RUN_OUT_HELP = "Run folder to write (or resume)."
+
+
+def _datasets_option(help: str):
+    """``--data DIR`` (repeatable, at least one): the normalized datasets to train on."""
+    return click.option("--data", "data", multiple=True, required=True, type=EXISTING_FOLDER, help=help)
+
+
+def _set_threads(threads: int | None) -> None:
+    """Use ``threads`` CPU threads in torch (None: torch's choice)."""
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
+
+
+@click.command("align-colour")
+@_datasets_option("Normalized dataset folder (repeat for each dataset stage 1 will train on).")
+@click.option(
+    "--uncalibrated",
+    multiple=True,
+    required=True,
+    metavar="NAME",
+    help="Dataset without colour calibration (repeatable): its 3x3 colour matrix is learned.",
+)
+@MODEL_PRESET_OPTION
+@WARMUP_ITERATIONS_OPTION
+@seed_option()
+@EVAL_VIEWS_OPTION
+@threads_option()
+@out_option("Folder for the warm-up run and one dataset view per --data.")
+def align_colour_command(
+    data, uncalibrated, preset, warmup_iterations, seed, eval_views, threads, out
+) -> None:
+    """Learn the colour matrix of uncalibrated datasets (warm-up without lighting codes, paper 4.1).
+
+    Writes OUT/warmup/ (the warm-up run), OUT/<dataset>/ for every --data: a view of the dataset (links to
+    its files; the source is not modified) carrying colour_alignment.json for the uncalibrated ones, and
+    OUT/colour_alignment.json (matrices and held-out PSNR/SSIM without and with them). Train stage 1 on the
+    views: relightanyone train stage1 --data OUT/<dataset> ... --no-colour-warmup
+
+    Example: relightanyone align-colour --data out/d1 --data out/ava256 --uncalibrated ava256 --out aligned
+    """
+    from relightanyone.model.networks.presets import get_preset, with_overrides
+    from relightanyone.model.train.colour_warmup import align_colours
+
+    _set_threads(threads)
+    chosen = with_overrides(get_preset(preset), warmup_iterations=warmup_iterations)
+    report = align_colours(list(data), tuple(uncalibrated), chosen, out, seed, eval_views)
+    click.echo("colour matrices (render -> dataset): " + json.dumps(report.get("colour_matrices", {})))
+    click.echo(f"dataset views for stage 1: {', '.join(str(out / n) for n in report['datasets'])}")
 
 
 @click.group("train")
@@ -21,27 +105,9 @@ def train_group() -> None:
 
 
 @train_group.command("stage1")
-@click.option(
-    "--data",
-    "data",
-    multiple=True,
-    required=True,
-    type=click.Path(exists=True, file_okay=False, path_type=Path),
-    help="Normalized dataset folder (repeat for each dataset).",
-)
-@click.option(
-    "--preset",
-    type=click.Choice(PRESET_NAMES),
-    default="tiny",
-    show_default=True,
-    help="Model size and schedule.",
-)
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False, path_type=Path),
-    required=True,
-    help="Run folder to write (or resume).",
-)
+@_datasets_option("Normalized dataset folder (repeat for each dataset).")
+@MODEL_PRESET_OPTION
+@out_option(RUN_OUT_HELP)
 @click.option(
     "--uncalibrated",
     multiple=True,
@@ -54,27 +120,13 @@ def train_group() -> None:
     show_default=True,
     help="Run the colour warm-up for --uncalibrated datasets (off: reuse matrices already stored).",
 )
-@click.option("--iterations", type=int, default=None, help="Override the preset's iteration count.")
-@click.option(
-    "--warmup-iterations", type=int, default=None, help="Override the preset's warm-up iteration count."
-)
-@click.option("--batch-size", type=int, default=None, help="Override the preset's batch size (per process).")
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option(
-    "--resume/--no-resume",
-    default=True,
-    show_default=True,
-    help="Continue from RUN/checkpoint.pt when present.",
-)
-@click.option(
-    "--eval-views", type=int, default=None, help="Held-out views per dataset to evaluate (default: all)."
-)
-@click.option(
-    "--threads",
-    type=int,
-    default=None,
-    help="CPU threads for torch (default: torch's choice; use 1 on a machine shared with other jobs).",
-)
+@ITERATIONS_OPTION
+@WARMUP_ITERATIONS_OPTION
+@BATCH_SIZE_OPTION
+@seed_option()
+@RESUME_OPTION
+@EVAL_VIEWS_OPTION
+@threads_option()
 def train_stage1_command(
     data,
     preset,
@@ -96,135 +148,85 @@ def train_stage1_command(
     Under torchrun (torchrun --nproc_per_node 2 -m relightanyone train stage1 ...) the processes train
     data-parallel. Run folder: checkpoint.pt, run.json, metrics.json, tensorboard/ (and warmup/).
     """
-    import torch
-
-    from relightanyone.model.networks.presets import get_preset
+    from relightanyone.model.networks.presets import get_preset, with_overrides
     from relightanyone.model.train.colour_warmup import run_colour_warmup
     from relightanyone.model.train.stage1 import Stage1Config, train_stage1
 
-    if threads is not None:
-        torch.set_num_threads(threads)
-    chosen = get_preset(preset)
-    changes = {
-        k: v
-        for k, v in (
-            ("iterations", iterations),
-            ("warmup_iterations", warmup_iterations),
-            ("batch_size", batch_size),
+    _set_threads(threads)
+    chosen = with_overrides(
+        get_preset(preset), iterations=iterations, warmup_iterations=warmup_iterations, batch_size=batch_size
+    )
+    if uncalibrated and colour_warmup:
+        warm = run_colour_warmup(
+            list(data), out, chosen, tuple(uncalibrated), seed, eval_views_per_dataset=eval_views
         )
-        if v is not None
-    }
-    chosen = chosen.replace(**changes) if changes else chosen
-    try:
-        if uncalibrated and colour_warmup:
-            warm = run_colour_warmup(
-                list(data), out, chosen, tuple(uncalibrated), seed, eval_views_per_dataset=eval_views
-            )
-            if warm:
-                click.echo(
-                    "colour warm-up matrices (render -> dataset): " + json.dumps(warm["colour_matrices"])
-                )
-        metrics = train_stage1(
-            Stage1Config(
-                data=list(data),
-                out=out,
-                preset=chosen,
-                seed=seed,
-                resume=resume,
-                eval_views_per_dataset=eval_views,
-            )
+        if warm:
+            click.echo("colour warm-up matrices (render -> dataset): " + json.dumps(warm["colour_matrices"]))
+    config = Stage1Config(
+        data=list(data), out=out, preset=chosen, seed=seed, resume=resume, eval_views_per_dataset=eval_views
+    )
+    metrics = train_stage1(config)
+    for name, values in (metrics.get("held_out") or {}).items():
+        click.echo(
+            f"{name}: held-out PSNR {values['psnr']:.2f} dB, SSIM {values['ssim']:.4f} ({values['views']} views)"
         )
-    except (ValueError, FileNotFoundError) as error:
-        raise click.ClickException(str(error)) from error
-    if metrics.get("held_out"):
-        for name, values in metrics["held_out"].items():
-            click.echo(
-                f"{name}: held-out PSNR {values['psnr']:.2f} dB, SSIM {values['ssim']:.4f} ({values['views']} views)"
-            )
 
 
-@click.command("align-colour")
+@train_group.command("stage2")
 @click.option(
     "--data",
-    "data",
-    multiple=True,
+    type=EXISTING_FOLDER,
     required=True,
-    type=click.Path(exists=True, file_okay=False, path_type=Path),
-    help="Normalized dataset folder (repeat for each dataset stage 1 will train on).",
+    help="The normalized OLAT dataset (full-on and olat-KKK frames, lights.arrow).",
 )
 @click.option(
-    "--uncalibrated",
-    multiple=True,
-    required=True,
-    metavar="NAME",
-    help="Dataset without colour calibration (repeatable): its 3x3 colour matrix is learned.",
+    "--stage1",
+    "stage1_run",
+    type=EXISTING_FOLDER,
+    default=None,
+    help="The stage-1 run to freeze (trained with this dataset); not used with --single-stage.",
 )
-@click.option("--preset", type=click.Choice(PRESET_NAMES), default="tiny", show_default=True)
-@click.option("--warmup-iterations", type=int, default=None, help="Override the preset's warm-up length.")
-@click.option("--seed", type=int, default=0, show_default=True)
+@out_option(RUN_OUT_HELP)
+@MODEL_PRESET_OPTION
 @click.option(
-    "--eval-views", type=int, default=None, help="Held-out views per dataset to score (default: all)."
+    "--single-stage",
+    is_flag=True,
+    help="Train the single-stage baseline instead: stage 1 with relightable decoders, OLAT dataset only.",
 )
-@click.option("--threads", type=int, default=None, help="CPU threads for torch (default: torch's choice).")
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False, path_type=Path),
-    required=True,
-    help="Folder for the warm-up run and one dataset view per --data.",
-)
-def align_colour_command(
-    data, uncalibrated, preset, warmup_iterations, seed, eval_views, threads, out
+@ITERATIONS_OPTION
+@BATCH_SIZE_OPTION
+@seed_option()
+@RESUME_OPTION
+def train_stage2_command(
+    data, stage1_run, out, preset, single_stage, iterations, batch_size, seed, resume
 ) -> None:
-    """Learn the colour matrix of uncalibrated datasets (warm-up without lighting codes, paper 4.1).
+    """Train stage 2 (relighting UNet on a frozen stage-1 run) or the single-stage baseline.
 
-    Writes OUT/warmup/ (the warm-up run), OUT/<dataset>/ for every --data: a view of the dataset (links to
-    its files; the source is not modified) carrying colour_alignment.json for the uncalibrated ones, and
-    OUT/colour_alignment.json (matrices and held-out PSNR/SSIM without and with them). Train stage 1 on the
-    views: relightanyone train stage1 --data OUT/<dataset> ... --no-colour-warmup
-
-    Example: relightanyone align-colour --data out/d1 --data out/ava256 --uncalibrated ava256 --out aligned
+    Example: relightanyone train stage2 --data out/d1 --stage1 runs/s1 --preset demo --out runs/s2
     """
-    import torch
-
-    from relightanyone.format.dataset_view import link_dataset_view
-    from relightanyone.format.reader import load_manifest
-    from relightanyone.model.networks.presets import get_preset
-    from relightanyone.model.train.colour_warmup import run_colour_warmup
-
-    if threads is not None:
-        torch.set_num_threads(threads)
-    chosen = get_preset(preset)
-    if warmup_iterations is not None:
-        chosen = chosen.replace(warmup_iterations=warmup_iterations)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    try:
-        names = {load_manifest(Path(d)).info.name: Path(d) for d in data}
-        unknown = sorted(set(uncalibrated) - set(names))
-        if unknown:
-            raise ValueError(f"--uncalibrated {unknown} is not among the --data datasets {sorted(names)}")
-        metrics = run_colour_warmup(
-            list(data),
-            out,
-            chosen,
-            tuple(uncalibrated),
-            seed,
-            eval_views_per_dataset=eval_views,
-            views_dir=out,
+    if not single_stage and stage1_run is None:
+        raise click.UsageError(
+            "stage 2 needs --stage1 RUN (a stage-1 run trained with this dataset), or --single-stage"
         )
-        for name, folder in names.items():
-            if name not in uncalibrated:
-                link_dataset_view(folder, out / name)
-    except (ValueError, FileNotFoundError) as error:
-        raise click.ClickException(str(error)) from error
-    report = {
-        "uncalibrated": sorted(uncalibrated),
-        "datasets": {name: str(folder) for name, folder in names.items()},
-        **{k: v for k, v in metrics.items() if k != "losses"},
-    }
-    (out / "colour_alignment.json").write_text(json.dumps(report, indent=2, sort_keys=True) + "\n")
-    click.echo("colour matrices (render -> dataset): " + json.dumps(metrics.get("colour_matrices", {})))
-    click.echo(f"dataset views for stage 1: {', '.join(str(out / n) for n in names)}")
+    from relightanyone.model.networks.presets import get_preset, get_stage2_preset, with_overrides
+    from relightanyone.model.train.stage2 import Stage2Config, train_stage2
+
+    config = Stage2Config(
+        data=data,
+        out=out,
+        preset=with_overrides(get_stage2_preset(preset), iterations=iterations, batch_size=batch_size),
+        stage1_run=None if single_stage else stage1_run,
+        single_stage=single_stage,
+        stage1_preset=get_preset(preset) if single_stage else None,
+        seed=seed,
+        resume=resume,
+    )
+    metrics = train_stage2(config)
+    last = metrics.get("last_losses") or {}
+    click.echo(
+        f"{metrics['mode']}: {metrics['iterations']} iterations, last loss {last.get('total', float('nan')):.4g} "
+        f"(L1 {last.get('l1', float('nan')):.4g}); wrote {out}"
+    )
 
 
 @click.group("render")
@@ -233,7 +235,7 @@ def render_group() -> None:
 
 
 @render_group.command("stage1")
-@click.argument("run", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("run", type=EXISTING_FOLDER)
 @click.option(
     "--subject", default=None, help="Subject as <dataset>/<subject> (or a name unique across datasets)."
 )
@@ -247,138 +249,33 @@ def render_group() -> None:
     is_flag=True,
     help="Write lighting_grid.png: a subject of every dataset under every dataset's lighting code.",
 )
-@click.option(
-    "--out", type=click.Path(file_okay=False, path_type=Path), required=True, help="Folder for the PNGs."
-)
+@out_option("Folder for the PNGs.")
 def render_stage1_command(run, subject, lighting_code, cameras, orbit_count, lighting_grid, out) -> None:
     """Render a stage-1 subject to PNGs (sRGB); report colour shift and geometry when swapping lighting codes."""
-    from relightanyone.model.train.run import lighting_alignment_grid, load_run, render_subject
-
     if subject is None and not lighting_grid:
         raise click.UsageError("give --subject, --lighting-grid, or both")
-    try:
-        loaded = load_run(run)
-        reports = {}
-        if subject is not None:
-            reports["subject"] = render_subject(loaded, subject, out, lighting_code, cameras, orbit_count)
-        if lighting_grid:
-            reports["lighting_grid"] = lighting_alignment_grid(loaded, Path(out) / "lighting_grid.png")
-    except (ValueError, FileNotFoundError) as error:
-        raise click.ClickException(str(error)) from error
-    Path(out).mkdir(parents=True, exist_ok=True)
-    (Path(out) / "render_report.json").write_text(json.dumps(reports, indent=2) + "\n")
-    subject_report = reports.get("subject", {})
-    if "mean_colour_shift" in subject_report:
+    from relightanyone.model.train.run import render_run
+
+    reports = render_run(run, out, subject, lighting_code, cameras, orbit_count, lighting_grid)
+    shifted = reports.get("subject", {})
+    if "mean_colour_shift" in shifted:
         click.echo(
-            f"lighting code {subject_report['lighting_code']} instead of {subject_report['own_lighting_code']}: "
-            f"mean colour shift {[round(v, 4) for v in subject_report['mean_colour_shift']]} "
-            f"({100 * subject_report['relative_colour_shift']:.1f} %), geometry identical: "
-            f"{subject_report['geometry_identical']}"
+            f"lighting code {shifted['lighting_code']} instead of {shifted['own_lighting_code']}: "
+            f"mean colour shift {[round(v, 4) for v in shifted['mean_colour_shift']]} "
+            f"({100 * shifted['relative_colour_shift']:.1f} %), geometry identical: "
+            f"{shifted['geometry_identical']}"
         )
     click.echo(f"wrote {out}")
 
 
-COMMANDS: dict[str, click.Command] = {
-    "train": train_group,
-    "render": render_group,
-    "align-colour": align_colour_command,
-}
-
-
-@train_group.command("stage2")
-@click.option(
-    "--data",
-    type=click.Path(exists=True, file_okay=False, path_type=Path),
-    required=True,
-    help="The normalized OLAT dataset (full-on and olat-KKK frames, lights.arrow).",
-)
-@click.option(
-    "--stage1",
-    "stage1_run",
-    type=click.Path(exists=True, file_okay=False, path_type=Path),
-    default=None,
-    help="The stage-1 run to freeze (trained with this dataset); not used with --single-stage.",
-)
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False, path_type=Path),
-    required=True,
-    help="Run folder to write (or resume).",
-)
-@click.option(
-    "--preset",
-    type=click.Choice(PRESET_NAMES),
-    default="tiny",
-    show_default=True,
-    help="Model size and schedule.",
-)
-@click.option(
-    "--single-stage",
-    is_flag=True,
-    help="Train the single-stage baseline instead: stage 1 with relightable decoders, OLAT dataset only.",
-)
-@click.option("--iterations", type=int, default=None, help="Override the preset's iteration count.")
-@click.option("--batch-size", type=int, default=None, help="Override the preset's batch size.")
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option(
-    "--resume/--no-resume",
-    default=True,
-    show_default=True,
-    help="Continue from RUN/checkpoint.pt when present.",
-)
-def train_stage2_command(
-    data, stage1_run, out, preset, single_stage, iterations, batch_size, seed, resume
-) -> None:
-    """Train stage 2 (relighting UNet on a frozen stage-1 run) or the single-stage baseline.
-
-    Example: relightanyone train stage2 --data out/d1 --stage1 runs/s1 --preset demo --out runs/s2
-    """
-    from relightanyone.format.reader import IncompleteDatasetError
-    from relightanyone.model.networks.presets import get_preset, get_stage2_preset
-    from relightanyone.model.train.stage2 import Stage2Config, train_stage2
-
-    chosen = get_stage2_preset(preset)
-    changes = {k: v for k, v in (("iterations", iterations), ("batch_size", batch_size)) if v is not None}
-    chosen = chosen.replace(**changes) if changes else chosen
-    if not single_stage and stage1_run is None:
-        raise click.UsageError(
-            "stage 2 needs --stage1 RUN (a stage-1 run trained with this dataset), or --single-stage"
-        )
-    config = Stage2Config(
-        data=data,
-        out=out,
-        preset=chosen,
-        stage1_run=None if single_stage else stage1_run,
-        single_stage=single_stage,
-        stage1_preset=get_preset(preset) if single_stage else None,
-        seed=seed,
-        resume=resume,
-    )
-    try:
-        metrics = train_stage2(config)
-    except (ValueError, FileNotFoundError, IncompleteDatasetError) as error:
-        raise click.ClickException(str(error)) from error
-    last = metrics.get("last_losses") or {}
-    click.echo(
-        f"{metrics['mode']}: {metrics['iterations']} iterations, last loss {last.get('total', float('nan')):.4g} "
-        f"(L1 {last.get('l1', float('nan')):.4g}); wrote {out}"
-    )
-
-
 @click.command("fit")
+@click.option("--stage1", "stage1_run", type=EXISTING_FOLDER, required=True)
 @click.option(
-    "--stage1", "stage1_run", type=click.Path(exists=True, file_okay=False, path_type=Path), required=True
-)
-@click.option(
-    "--stage2",
-    "stage2_run",
-    type=click.Path(exists=True, file_okay=False, path_type=Path),
-    required=True,
-    help="The stage-2 run trained on --stage1.",
+    "--stage2", "stage2_run", type=EXISTING_FOLDER, required=True, help="The stage-2 run trained on --stage1."
 )
 @click.option(
     "--data",
-    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    type=EXISTING_FOLDER,
     required=True,
     help="Normalized dataset holding the subject's images, cameras and tracked meshes.",
 )
@@ -403,14 +300,9 @@ def train_stage2_command(
 @click.option("--finetune-iterations", type=int, default=300, show_default=True)
 @click.option("--views-per-step", type=int, default=4, show_default=True)
 @click.option("--image-scale", type=float, default=1.0, show_default=True, help="Resize inputs (and K).")
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--threads", type=int, default=None, help="CPU threads for torch (default: torch's choice).")
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False, path_type=Path),
-    required=True,
-    help="Folder for <subject>.avatar files and fit_report.json.",
-)
+@seed_option()
+@threads_option()
+@out_option("Folder for <subject>.avatar files and fit_report.json.")
 def fit_command(
     stage1_run,
     stage2_run,
@@ -435,63 +327,275 @@ def fit_command(
 
     Example: relightanyone fit --stage1 runs/s1 --stage2 runs/s2 --data out/faceolat --split test --out avatars
     """
-    import torch
+    from relightanyone.model.fit.fitter import FitSettings
+    from relightanyone.model.fit.subjects import fit_subjects, subjects_to_fit, write_fit_report
 
-    from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
-    from relightanyone.model.fit.fitter import FitSettings, fit_subject
-
-    if threads is not None:
-        torch.set_num_threads(threads)
-    try:
-        dataset = NormalizedDataset(data)
-        chosen = list(subjects) or sorted(
-            {k.split("/")[1] for k in dataset.select(splits=split, patterns=pattern)}
-        )
-    except (ValueError, FileNotFoundError, IncompleteDatasetError) as error:
-        raise click.ClickException(str(error)) from error
-    if not chosen:
-        raise click.ClickException(
-            f"{data}: no subject of split {split!r} has {pattern!r} rows; name subjects with --subject"
-        )
+    _set_threads(threads)
     settings = FitSettings(
         inversion_iterations=inversion_iterations,
         finetune_iterations=finetune_iterations,
         views_per_step=views_per_step,
         seed=seed,
     )
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    report = {}
-    for subject in chosen:
-        target = out / f"{subject}.avatar"
-        if target.is_file():
-            click.echo(f"{subject}: {target} exists, kept")
-            continue
-        try:
-            avatar = fit_subject(
-                stage1_run,
-                stage2_run,
-                data,
-                subject,
-                frame=frame,
-                cameras=list(cameras) or None,
-                pattern=pattern,
-                settings=settings,
-                image_scale=image_scale,
-                out=target,
+    fits = []
+    for fit in fit_subjects(
+        stage1_run,
+        stage2_run,
+        data,
+        subjects_to_fit(data, subjects, split, pattern),
+        out,
+        frame=frame,
+        cameras=list(cameras) or None,
+        pattern=pattern,
+        settings=settings,
+        image_scale=image_scale,
+    ):
+        fits.append(fit)
+        if fit.kept:
+            click.echo(f"{fit.subject}: {fit.avatar} exists, kept")
+        else:
+            click.echo(
+                f"{fit.subject}: {fit.views} views, L1 {fit.losses.get('l1', float('nan')):.4g}; wrote {fit.avatar}"
             )
-        except (ValueError, FileNotFoundError, IncompleteDatasetError) as error:
-            raise click.ClickException(f"{subject}: {error}") from error
-        losses = avatar.metadata.get("final_losses", {})
-        report[subject] = {"avatar": target.name, "views": len(avatar.metadata.get("cameras", [])), **losses}
-        click.echo(
-            f"{subject}: {len(avatar.metadata.get('cameras', []))} views, L1 {losses.get('l1', float('nan')):.4g}; wrote {target}"
-        )
-    previous = out / "fit_report.json"
-    if previous.is_file():
-        report = json.loads(previous.read_text()) | report
-    previous.write_text(json.dumps(report, indent=2, sort_keys=True) + "\n")
+    write_fit_report(out, fits)
 
 
-COMMANDS["fit"] = fit_command
-COMMANDS.update(AVATAR_COMMANDS)
+LIGHTING_OPTIONS = options(
+    click.option("--olat", type=int, default=None, metavar="K", help="Light K of the avatar's OLAT rig."),
+    click.option(
+        "--point-light",
+        "point_lights",
+        multiple=True,
+        metavar="X,Y,Z[,R,G,B]",
+        callback=parsed_by(parse_point_lights),
+        help="A point light in canonical metres (repeatable); R,G,B linear intensity, default the rig's mean light.",
+    ),
+    click.option(
+        "--envmap",
+        type=ANY_PATH,
+        default=None,
+        help="Equirectangular environment map (.exr or .hdr, linear, +y up).",
+    ),
+    click.option(
+        "--fitted-lighting",
+        is_flag=True,
+        help="The lighting estimated from the images the avatar was fitted to.",
+    ),
+)
+
+
+@click.command("relight")
+@click.argument("avatar", type=ANY_PATH)
+@LIGHTING_OPTIONS
+@click.option(
+    "--rotate",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="With --envmap: N frames of the map turned about the vertical axis.",
+)
+@click.option(
+    "--cameras",
+    "camera_source",
+    type=click.Choice(["dataset", "orbit"]),
+    default="dataset",
+    show_default=True,
+    help="dataset: the fitted rows' cameras (or --data/--subject); orbit: around the head centre.",
+)
+@click.option(
+    "--data",
+    type=ANY_PATH,
+    default=None,
+    help="With --cameras dataset: take cameras from this normalized dataset instead.",
+)
+@click.option("--subject", default=None, help="With --data: the subject whose first frame's cameras to use.")
+@click.option(
+    "--count", type=click.IntRange(min=1), default=24, show_default=True, help="Orbit: number of cameras."
+)
+@click.option(
+    "--size", type=click.IntRange(min=2), default=512, show_default=True, help="Orbit: image side in pixels."
+)
+@click.option(
+    "--distance",
+    type=float,
+    default=None,
+    help="Orbit: camera distance from the head centre in metres (default 6 head radii).",
+)
+@click.option(
+    "--image-scale",
+    type=float,
+    default=1.0,
+    show_default=True,
+    help="Dataset cameras: render at this fraction of the stored size.",
+)
+@click.option(
+    "--exposure",
+    default="0",
+    show_default=True,
+    callback=parsed_by(parse_exposure),
+    help="Exposure of the PNGs in stops (linear × 2^stops), or 'auto'.",
+)
+@click.option("--exr", is_flag=True, help="Also write every frame as a linear float32 EXR.")
+@click.option(
+    "--background",
+    default="0,0,0",
+    show_default=True,
+    metavar="R,G,B",
+    callback=parsed_by(parse_triple),
+    help="Linear RGB background.",
+)
+@click.option(
+    "--strip-format",
+    type=click.Choice(["webp", "gif", "mp4", "none"]),
+    default="webp",
+    show_default=True,
+    help="Animation for an orbit or a rotating environment.",
+)
+@click.option(
+    "--fps",
+    type=click.FloatRange(min=0, min_open=True),
+    default=12.0,
+    show_default=True,
+    help="Frames per second of the animation.",
+)
+@out_option("Folder for the frames.")
+@click.option("--progress/--no-progress", default=True, show_default=True)
+@device_option()
+def relight_command(
+    avatar,
+    olat,
+    point_lights,
+    envmap,
+    fitted_lighting,
+    rotate,
+    camera_source,
+    data,
+    subject,
+    count,
+    size,
+    distance,
+    image_scale,
+    exposure,
+    exr,
+    background,
+    strip_format,
+    fps,
+    out,
+    progress,
+    device,
+) -> None:
+    """Relight a fitted avatar: sRGB PNG frames, a contact sheet and, for an orbit or a rotating
+    environment, an animated strip.
+
+    \b
+    Examples:
+      relightanyone relight s02.avatar --olat 3 --out renders/
+      relightanyone relight s02.avatar --point-light 0.5,0.3,0.8 --point-light -0.6,0,0.5,1,0.8,0.6 --out renders/
+      relightanyone relight s02.avatar --envmap studio.exr --rotate 24 --cameras orbit --count 1 --out renders/
+      relightanyone relight s02.avatar --fitted-lighting --cameras orbit --count 36 --size 384 --out renders/
+    """
+    from relightanyone.model.fit.lighting_choice import LightingChoice, chosen_lightings
+    from relightanyone.model.fit.relight import CameraChoice, chosen_cameras, relight_into
+
+    lighting = LightingChoice(olat, point_lights, envmap, fitted_lighting, rotate)
+    camera_choice = CameraChoice(camera_source, data, subject, count, size, distance, image_scale)
+    lighting.check()
+    camera_choice.check()
+    fitted, source = _load_avatar(avatar, device)
+    lightings = chosen_lightings(fitted, lighting)
+    cameras = chosen_cameras(fitted, source, camera_choice)
+    report = relight_into(
+        fitted,
+        avatar,
+        cameras,
+        lightings,
+        out,
+        stops=exposure,
+        exr=exr,
+        background=background,
+        strip_format=strip_format,
+        fps=fps,
+        orbit=camera_source == "orbit",
+        progress=progress,
+    )
+    frames = len(report["cameras"]) * len(report["lightings"])
+    click.echo(
+        f"wrote {frames} frames, contact_sheet.png{''.join(', ' + s for s in report['strips'])} to {out}"
+    )
+
+
+@click.command("export")
+@click.argument("avatar", type=ANY_PATH)
+@LIGHTING_OPTIONS
+@click.option(
+    "--view",
+    default=None,
+    metavar="X,Y,Z",
+    callback=parsed_by(parse_triple),
+    help="Camera centre (canonical metres) the view-dependent colours are baked for; default: in front of the face.",
+)
+@click.option(
+    "--colour-space",
+    type=click.Choice(["srgb", "linear"]),
+    default="srgb",
+    show_default=True,
+    help="srgb: display-referred colours for splat viewers; linear: scene-linear.",
+)
+@click.option(
+    "--exposure",
+    type=float,
+    default=0.0,
+    show_default=True,
+    help="Exposure in stops applied to the linear colours before encoding.",
+)
+@click.option(
+    "--sh-degree",
+    type=click.IntRange(0, 3),
+    default=3,
+    show_default=True,
+    help="SH degree the PLY declares (higher bands are zero).",
+)
+@out_option("The .ply file to write.", file=True)
+@device_option()
+def export_command(
+    avatar, olat, point_lights, envmap, fitted_lighting, view, colour_space, exposure, sh_degree, out, device
+) -> None:
+    """Export a fitted avatar relit under one lighting as a standard 3D Gaussian Splatting PLY.
+
+    \b
+    Example:
+      relightanyone export s02.avatar --envmap studio.exr --out s02_studio.ply
+    """
+    from relightanyone.model.fit.lighting_choice import LightingChoice, chosen_lightings
+    from relightanyone.model.fit.relight import export_ply
+
+    lighting = LightingChoice(olat, point_lights, envmap, fitted_lighting)
+    lighting.check()
+    fitted, _ = _load_avatar(avatar, device)
+    (named,) = chosen_lightings(fitted, lighting)
+    position = export_ply(fitted, named, out, view, colour_space, exposure, sh_degree)
+    click.echo(
+        f"wrote {out}: {fitted.gaussian_count} Gaussians under {named.label}, {colour_space} colours, "
+        f"view from {[round(float(v), 4) for v in position]}"
+    )
+
+
+def _load_avatar(path: Path, device: str):
+    """The avatar at ``path`` on ``device`` and its file (:func:`~relightanyone.model.fit.relight.load_avatar`);
+    says which file was used when ``path`` is a folder of avatars."""
+    from relightanyone.model.fit.relight import load_avatar
+
+    avatar, source = load_avatar(path, device)
+    if source != Path(path):
+        click.echo(f"using {source} (the first avatar in {path})", err=True)
+    return avatar, source
+
+
+COMMANDS: dict[str, click.Command] = {
+    "align-colour": align_colour_command,
+    "train": train_group,
+    "render": render_group,
+    "fit": fit_command,
+    "relight": relight_command,
+    "export": export_command,
+}

@@ -1,6 +1,7 @@
-"""Commands of the pipelines layer: ``run`` (a pipeline file) and ``export-dataset``.
+"""Commands of the pipelines layer: ``run`` (a pipeline file), ``export-dataset``, ``report`` and ``expand``.
 
-Heavy imports stay inside the commands so that ``relightanyone --help`` stays instant.
+The runner, the exporter (OpenEXR) and the model load inside the commands so that ``relightanyone --help``
+stays instant.
 """
 
 from __future__ import annotations
@@ -9,6 +10,8 @@ from pathlib import Path
 
 import click
 
+from relightanyone.cli_options import EXISTING_FOLDER, dry_run_option, names_option, out_option, quiet_option
+from relightanyone.errors import InputError
 from relightanyone.pipelines.expand.command import expand_command
 from relightanyone.pipelines.report.command import report_command
 
@@ -22,9 +25,7 @@ def _pipeline_path(value: str) -> Path:
         return path
     if value in SHIPPED_PIPELINES:
         return Path(__file__).resolve().parent / f"{value}.yaml"
-    raise click.BadParameter(
-        f"{value}: no such file (shipped pipelines: {', '.join(SHIPPED_PIPELINES)})", param_hint="PIPELINE"
-    )
+    raise InputError(f"{value}: no such pipeline file (shipped pipelines: {', '.join(SHIPPED_PIPELINES)})")
 
 
 def _summary(results) -> list[str]:
@@ -57,12 +58,8 @@ def _summary(results) -> list[str]:
     metavar="STAGE",
     help="Run only these stages (repeatable); the stages they need must have completed before.",
 )
-@click.option(
-    "--dry-run", is_flag=True, help="Print which stages would run or be skipped, and why; run nothing."
-)
-@click.option(
-    "--quiet", is_flag=True, help="Do not stream the stages' own output (it is still in _stage.log)."
-)
+@dry_run_option("Print which stages would run or be skipped, and why; run nothing.")
+@quiet_option("Do not stream the stages' own output (it is still in _stage.log).")
 def run_command(
     pipeline: str,
     variables: tuple[str, ...],
@@ -79,40 +76,35 @@ def run_command(
     """
     import sys
 
-    from relightanyone.pipelines.dag.pipeline_file import PipelineError, parse_var_overrides
-    from relightanyone.pipelines.dag.runner import StageFailed, execute, load_pipeline, plan
+    from relightanyone.pipelines.dag.pipeline_file import parse_var_overrides
+    from relightanyone.pipelines.dag.runner import execute, load_pipeline, plan
 
-    try:
-        loaded = load_pipeline(_pipeline_path(pipeline), parse_var_overrides(variables))
-        if dry_run:
-            decisions = plan(loaded, force=force, only=only)
-            width = max(len(d.stage) for d in decisions)
-            for decision in decisions:
-                action = (
-                    "stop" if decision.reason.startswith("cannot run") else "run " if decision.run else "skip"
-                )
-                click.echo(f"{action}  {decision.stage.ljust(width)}  {decision.reason}")
-            click.echo(f"dry run: {sum(d.run for d in decisions)} of {len(decisions)} stage(s) would run")
-            blocked = [d.stage for d in decisions if d.reason.startswith("cannot run")]
-            if blocked:
-                raise click.ClickException(
-                    f"stage(s) {', '.join(blocked)} would stop the run: fix their inputs"
-                )
-            return
-        results = execute(
-            loaded,
-            force=force,
-            only=only,
-            echo=None if quiet else sys.stdout.buffer,
-            announce=lambda line: click.secho(line, bold=True),
-        )
-    except (PipelineError, StageFailed) as error:
-        raise click.ClickException(str(error)) from None
+    loaded = load_pipeline(_pipeline_path(pipeline), parse_var_overrides(variables))
+    if dry_run:
+        decisions = plan(loaded, force=force, only=only)
+        width = max(len(d.stage) for d in decisions)
+        for decision in decisions:
+            action = (
+                "stop" if decision.reason.startswith("cannot run") else "run " if decision.run else "skip"
+            )
+            click.echo(f"{action}  {decision.stage.ljust(width)}  {decision.reason}")
+        click.echo(f"dry run: {sum(d.run for d in decisions)} of {len(decisions)} stage(s) would run")
+        blocked = [d.stage for d in decisions if d.reason.startswith("cannot run")]
+        if blocked:
+            raise click.ClickException(f"stage(s) {', '.join(blocked)} would stop the run: fix their inputs")
+        return
+    results = execute(
+        loaded,
+        force=force,
+        only=only,
+        echo=None if quiet else sys.stdout.buffer,
+        announce=lambda line: click.secho(line, bold=True),
+    )
     click.echo("\n".join(_summary(results)))
 
 
 @click.command("export-dataset")
-@click.argument("dataset", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("dataset", type=EXISTING_FOLDER)
 @click.option(
     "--format",
     "file_format",
@@ -121,12 +113,7 @@ def run_command(
     show_default=True,
     help="Image file format (linear OpenEXR).",
 )
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False, path_type=Path),
-    required=True,
-    help="Folder to write <subject>/<frame>/<camera>/<pattern>.exr, masks and the JSON tables into.",
-)
+@out_option("Folder to write <subject>/<frame>/<camera>/<pattern>.exr, masks and the JSON tables into.")
 @click.option(
     "--precision",
     type=click.Choice(["float", "half"]),
@@ -134,24 +121,18 @@ def run_command(
     show_default=True,
     help="EXR pixel type: float keeps the decoded values exactly, half halves the size.",
 )
-@click.option(
-    "--subjects", multiple=True, help="Subjects to export (comma-separated or repeated; default all)."
-)
+@names_option("--subjects", "Subjects to export (comma-separated or repeated; default all).")
 def export_dataset_command(
-    dataset: Path, file_format: str, out: Path, precision: str, subjects: tuple[str, ...]
+    dataset: Path, file_format: str, out: Path, precision: str, subjects: tuple[str, ...] | None
 ) -> None:
     """Write the normalized dataset DATASET as linear EXR images, mask PNGs, cameras.json and lights.json.
 
     For tools outside this one: OUT/<subject>/<frame>/<camera>/<pattern>.exr and <pattern>.mask.png, one
     cameras.json row per image (K, w2c, size, file names) and lights.json (the rig of an OLAT dataset).
     """
-    from relightanyone.pipelines.export import ExportError, export_dataset
+    from relightanyone.pipelines.export import export_dataset
 
-    chosen = tuple(s.strip() for value in subjects for s in value.split(",") if s.strip()) or None
-    try:
-        summary = export_dataset(dataset, out, precision=precision, subjects=chosen, progress=True)
-    except ExportError as error:
-        raise click.ClickException(str(error)) from None
+    summary = export_dataset(dataset, out, precision=precision, subjects=subjects, progress=True)
     click.echo(
         f"exported {summary['images']} image(s) of {summary['dataset']} to {out} "
         f"({summary['subjects']} subject(s), {summary['lights']} light(s))"
@@ -159,8 +140,8 @@ def export_dataset_command(
 
 
 COMMANDS: dict[str, click.Command] = {
-    "run": run_command,
     "export-dataset": export_dataset_command,
-    "report": report_command,
     "expand": expand_command,
+    "report": report_command,
+    "run": run_command,
 }

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.errors import RelightAnyoneError
 from relightanyone.format.arrow_io import atomic_write_bytes
 from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
 from relightanyone.format.schema import MANIFEST_NAME, SchemaError
@@ -40,7 +41,7 @@ EXPORT_CONVENTIONS = {
 }
 
 
-class ExportError(RuntimeError):
+class ExportError(RelightAnyoneError, RuntimeError):
     """The dataset cannot be exported; the message names the folder and the problem."""
 
 

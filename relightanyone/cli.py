@@ -1,8 +1,15 @@
 """The ``relightanyone`` command.
 
 Each layer keeps its commands in its own ``cli.py`` as a ``COMMANDS`` mapping of name to a click
-command; this module only gathers them, so ``--help`` lists exactly the stages that exist. The layer
-modules import nothing heavy at module level (torch, OpenCV, ...) so that ``--help`` stays instant.
+command; this module gathers them, lists them in data-flow order, and is the one error boundary of every
+command. The layer modules import nothing heavy at module level (torch, OpenCV, ...): the commands
+import those in their bodies, so that ``relightanyone --help`` stays instant.
+
+The error boundary: an expected failure escaping a command (a project error, :mod:`relightanyone.errors`;
+an input error of render, align or synth, which cannot share that base; an ``OSError`` such as a missing
+file, a read-only folder or a full disk; a path argument naming nothing) is printed as one line on stderr
+that names the file and the problem, and the command exits with status 1. Anything else is a bug and keeps
+its traceback.
 """
 
 from __future__ import annotations
@@ -12,8 +19,10 @@ import importlib
 import click
 
 from relightanyone import __version__
+from relightanyone.errors import RelightAnyoneError
+from relightanyone.render.errors import FileFormatError
+from relightanyone.synth.errors import WorldError
 
-# Order is the order of the data flow; it is also the order of the help listing.
 LAYER_CLI_MODULES = (
     "relightanyone.synth.cli",
     "relightanyone.ingest.cli",
@@ -22,14 +31,63 @@ LAYER_CLI_MODULES = (
     "relightanyone.evaluation.cli",
     "relightanyone.pipelines.cli",
 )
+# The order of the help listing: the order in which data flows through the commands.
+COMMAND_ORDER = (
+    "synth",
+    "synth-preview",
+    "ingest",
+    "validate",
+    "inspect",
+    "export-dataset",
+    "align-colour",
+    "train",
+    "render",
+    "fit",
+    "relight",
+    "export",
+    "expand",
+    "evaluate",
+    "report",
+    "run",
+)
+# render, align and synth cannot import the project's base class (relightanyone.errors): their input errors
+# are listed by type.
+EXPECTED_FAILURES = (RelightAnyoneError, FileFormatError, WorldError, OSError)
 
 
-class _OrderedGroup(click.Group):
+def failure_line(error: BaseException) -> str:
+    """The one line an expected failure is reported as: ``path: reason`` for an OSError that names its
+    file (``path -> other: reason`` for a rename), otherwise the message, its lines joined by "; "."""
+    if isinstance(error, OSError) and error.filename is not None:
+        where = str(error.filename)
+        if error.filename2 is not None:
+            where += f" -> {error.filename2}"
+        text = f"{where}: {error.strerror or error}"
+    else:
+        text = str(error) or type(error).__name__
+    return "; ".join(line.strip() for line in text.splitlines() if line.strip())
+
+
+class RelightAnyoneGroup(click.Group):
+    """The top-level group: commands listed in the order they were added, one error boundary for all."""
+
     def list_commands(self, ctx: click.Context) -> list[str]:
         return list(self.commands)
 
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except click.BadParameter as error:
+            # A path argument that does not exist (or is a file, not a folder) is bad input, not misuse.
+            if isinstance(getattr(error.param, "type", None), click.Path):
+                raise click.ClickException(failure_line(error.format_message())) from None
+            raise
+        except EXPECTED_FAILURES as error:
+            raise click.ClickException(failure_line(error)) from None
+
 
 def _gather_commands() -> dict[str, click.Command]:
+    """Every layer's commands, in ``COMMAND_ORDER``; a command defined twice or not placed is a bug."""
     commands: dict[str, click.Command] = {}
     for module_name in LAYER_CLI_MODULES:
         module = importlib.import_module(module_name)
@@ -37,11 +95,16 @@ def _gather_commands() -> dict[str, click.Command]:
             if name in commands:
                 raise RuntimeError(f"command {name!r} is defined twice ({module_name})")
             commands[name] = command
-    return commands
+    if set(commands) != set(COMMAND_ORDER):
+        raise RuntimeError(
+            f"COMMAND_ORDER lists {sorted(set(COMMAND_ORDER) - set(commands))} that no layer defines and "
+            f"misses {sorted(set(commands) - set(COMMAND_ORDER))}"
+        )
+    return {name: commands[name] for name in COMMAND_ORDER}
 
 
 @click.group(
-    cls=_OrderedGroup,
+    cls=RelightAnyoneGroup,
     context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110},
 )
 @click.version_option(__version__, prog_name="relightanyone")

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from relightanyone.render.errors import FileFormatError
 from relightanyone.render.lights import DirectionalLights
 from relightanyone.render.sh import project_directions_to_sh
 
@@ -307,20 +308,22 @@ def load_envmap(path: str | Path) -> torch.Tensor:
             elif "Y" in channels:
                 pixels = np.repeat(np.asarray(channels["Y"].pixels, dtype=np.float32)[..., None], 3, axis=-1)
             else:
-                raise ValueError(f"{path}: no RGB, RGBA or Y channels in the EXR (found {sorted(channels)})")
+                raise FileFormatError(
+                    f"{path}: no RGB, RGBA or Y channels in the EXR (found {sorted(channels)})"
+                )
     elif suffix in (".hdr", ".pic"):
         import cv2
 
         bgr = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)
         if bgr is None:
-            raise ValueError(f"{path}: OpenCV could not decode this Radiance HDR file")
+            raise FileFormatError(f"{path}: OpenCV could not decode this Radiance HDR file")
         pixels = np.ascontiguousarray(bgr[..., ::-1], dtype=np.float32)
     else:
-        raise ValueError(f"{path}: unsupported environment map format '{suffix}' (use .exr or .hdr)")
+        raise FileFormatError(f"{path}: unsupported environment map format '{suffix}' (use .exr or .hdr)")
     if pixels.ndim != 3 or pixels.shape[0] < 2 or pixels.shape[1] < 2:
-        raise ValueError(f"{path}: expected an H x W colour image, got shape {pixels.shape}")
+        raise FileFormatError(f"{path}: expected an H x W colour image, got shape {pixels.shape}")
     if not np.isfinite(pixels).all():
-        raise ValueError(f"{path}: environment map has NaN or infinite values")
+        raise FileFormatError(f"{path}: environment map has NaN or infinite values")
     return torch.from_numpy(np.clip(pixels, 0.0, None)).permute(2, 0, 1).contiguous()
 
 
@@ -341,7 +344,7 @@ def save_envmap(path: str | Path, env: torch.Tensor) -> None:
         if not cv2.imwrite(str(path), np.ascontiguousarray(pixels[..., ::-1])):
             raise OSError(f"{path}: OpenCV could not write the HDR file")
     else:
-        raise ValueError(f"{path}: unsupported environment map format '{suffix}' (use .exr or .hdr)")
+        raise FileFormatError(f"{path}: unsupported environment map format '{suffix}' (use .exr or .hdr)")
 
 
 def _check_env(env: torch.Tensor) -> tuple[int, int, int]:

@@ -20,6 +20,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from relightanyone.render.errors import FileFormatError
+
 
 @dataclass(frozen=True)
 class PointLights:
@@ -110,19 +112,19 @@ def olat_rig_from_table(table: Any, source: str = "lights table") -> PointLights
     columns = _columns(table)
     for name in ("position_m", "intensity_rgb"):
         if name not in columns:
-            raise ValueError(f"{source}: missing column '{name}' (found {sorted(columns)})")
+            raise FileFormatError(f"{source}: missing column '{name}' (found {sorted(columns)})")
     positions = _vector_column(columns["position_m"], "position_m", source)
     intensities = _vector_column(columns["intensity_rgb"], "intensity_rgb", source)
     if len(positions) != len(intensities):
-        raise ValueError(
+        raise FileFormatError(
             f"{source}: position_m has {len(positions)} rows but intensity_rgb has {len(intensities)}"
         )
     if (intensities < 0).any():
-        raise ValueError(f"{source}: intensity_rgb has negative values")
+        raise FileFormatError(f"{source}: intensity_rgb has negative values")
     if "index" in columns:
         index = np.asarray(columns["index"], dtype=np.int64)
         if sorted(index.tolist()) != list(range(len(index))):
-            raise ValueError(f"{source}: column 'index' must be a permutation of 0..{len(index) - 1}")
+            raise FileFormatError(f"{source}: column 'index' must be a permutation of 0..{len(index) - 1}")
         order = np.argsort(index)
         positions, intensities = positions[order], intensities[order]
     return PointLights(
@@ -145,7 +147,7 @@ def full_on_rig_from_table(table: Any, rig: PointLights, source: str = "lights t
     if "index" in columns:
         intensities = intensities[np.argsort(np.asarray(columns["index"], dtype=np.int64))]
     if (intensities < 0).any():
-        raise ValueError(f"{source}: full_on_intensity_rgb has negative values")
+        raise FileFormatError(f"{source}: full_on_intensity_rgb has negative values")
     return PointLights(rig.positions, torch.from_numpy(intensities.astype(np.float32)))
 
 

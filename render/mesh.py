@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relightanyone.render.errors import FileFormatError
+
 
 @dataclass(frozen=True)
 class TexturedMesh:
@@ -78,13 +80,15 @@ def load_obj(path: str | Path) -> TexturedMesh:
         split = trimesh.load(path, process=False, force="mesh")
     uv = getattr(split.visual, "uv", None)
     if uv is None:
-        raise ValueError(f"{path}: no texture coordinates ('vt' records referenced by faces) found")
+        raise FileFormatError(f"{path}: no texture coordinates ('vt' records referenced by faces) found")
     faces = np.asarray(ordered.faces, dtype=np.int64)
     face_uvs = np.asarray(split.faces, dtype=np.int64)
     if faces.shape != face_uvs.shape or not np.allclose(
         np.asarray(ordered.vertices)[faces], np.asarray(split.vertices)[face_uvs]
     ):
-        raise ValueError(f"{path}: could not match faces to texture coordinates (mixed groups or quads?)")
+        raise FileFormatError(
+            f"{path}: could not match faces to texture coordinates (mixed groups or quads?)"
+        )
     return TexturedMesh(
         vertices=np.asarray(ordered.vertices, dtype=np.float64),
         faces=faces,
@@ -143,25 +147,25 @@ def read_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     try:
         text = path.read_text(encoding="utf-8", errors="replace")
     except OSError as error:
-        raise ValueError(f"{path}: cannot read mesh ({error.strerror or error})") from None
+        raise FileFormatError(f"{path}: cannot read mesh ({error.strerror or error})") from None
     for number, line in enumerate(text.splitlines(), start=1):
         if line.startswith("v "):
             parts = line.split()
             if len(parts) < 4:
-                raise ValueError(f"{path}:{number}: vertex needs 3 coordinates")
+                raise FileFormatError(f"{path}:{number}: vertex needs 3 coordinates")
             vertices.append([float(parts[1]), float(parts[2]), float(parts[3])])
         elif line.startswith("f "):
             index = [int(token.split("/")[0]) for token in line.split()[1:]]
             index = [i - 1 if i > 0 else len(vertices) + i for i in index]
             faces.extend([index[0], index[k], index[k + 1]] for k in range(1, len(index) - 1))
     if not vertices:
-        raise ValueError(f"{path}: no vertices found (not an OBJ mesh?)")
+        raise FileFormatError(f"{path}: no vertices found (not an OBJ mesh?)")
     V = np.asarray(vertices, dtype=np.float64)
     F = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if not np.all(np.isfinite(V)):
-        raise ValueError(f"{path}: vertices hold NaN or infinite coordinates")
+        raise FileFormatError(f"{path}: vertices hold NaN or infinite coordinates")
     if F.size and (F.min() < 0 or F.max() >= len(V)):
-        raise ValueError(f"{path}: faces index vertices outside 1..{len(V)}")
+        raise FileFormatError(f"{path}: faces index vertices outside 1..{len(V)}")
     return V, F
 
 
@@ -177,10 +181,10 @@ def read_obj_vertices(path: str | Path, expected: int | None = None) -> np.ndarr
     try:
         text = path.read_text(encoding="utf-8", errors="replace")
     except OSError as error:
-        raise ValueError(f"{path}: cannot read mesh ({error.strerror or error})") from None
+        raise FileFormatError(f"{path}: cannot read mesh ({error.strerror or error})") from None
     lines = [line[2:] for line in text.split("\n") if line.startswith("v ")]
     if not lines:
-        raise ValueError(f"{path}: no vertices found (not an OBJ mesh?)")
+        raise FileFormatError(f"{path}: no vertices found (not an OBJ mesh?)")
     try:
         # One C-level parse of all numbers; records with a w or colour column take the per-line path.
         numbers = np.array(" ".join(lines).split(), dtype=np.float64)
@@ -189,13 +193,13 @@ def read_obj_vertices(path: str | Path, expected: int | None = None) -> np.ndarr
         else:
             vertices = np.asarray([line.split()[:3] for line in lines], dtype=np.float64)
     except ValueError:
-        raise ValueError(f"{path}: a vertex record does not hold 3 numbers") from None
+        raise FileFormatError(f"{path}: a vertex record does not hold 3 numbers") from None
     if vertices.ndim != 2 or vertices.shape[1] != 3:
-        raise ValueError(f"{path}: a vertex record does not hold 3 numbers")
+        raise FileFormatError(f"{path}: a vertex record does not hold 3 numbers")
     if not np.all(np.isfinite(vertices)):
-        raise ValueError(f"{path}: vertices hold NaN or infinite coordinates")
+        raise FileFormatError(f"{path}: vertices hold NaN or infinite coordinates")
     if expected is not None and len(vertices) != expected:
-        raise ValueError(
+        raise FileFormatError(
             f"{path}: mesh has {len(vertices)} vertices but the template has {expected} "
             "(a different topology?)"
         )

@@ -1,6 +1,9 @@
 """``relightanyone synth`` and ``relightanyone synth-preview``.
 
-Nothing heavy is imported at module level so that ``relightanyone --help`` stays instant.
+The world generator (NumPy, OpenCV) is imported inside the commands so that ``relightanyone --help`` stays
+instant. synth imports nothing of the rest of the project, so it declares its options itself; its
+expected failures are :class:`~relightanyone.synth.errors.WorldError`, which the command line reports as
+one line.
 """
 
 from __future__ import annotations
@@ -8,6 +11,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+
+from relightanyone.synth.errors import WorldError
 
 DATASET_CHOICES = ("d1", "d2", "d3", "d4")
 PREVIEW_TILE_HEIGHT = 192
@@ -66,12 +71,9 @@ def synth_command(
 
     chosen = _parse_datasets(datasets)
     workers = workers or max(1, min(2, os.cpu_count() or 1))
-    try:
-        world = generate_world(
-            out, preset, seed=seed, datasets=chosen, progress=True, overwrite=overwrite, workers=workers
-        )
-    except ValueError as error:
-        raise click.ClickException(str(error)) from None
+    world = generate_world(
+        out, preset, seed=seed, datasets=chosen, progress=True, overwrite=overwrite, workers=workers
+    )
     click.echo(f"wrote {preset} world (seed {seed}) with {', '.join(world['datasets'])} to {out}")
     click.echo(f"preview it with: relightanyone synth-preview {out} --out {out / 'contact-sheet.png'}")
 
@@ -140,7 +142,7 @@ def build_contact_sheet(world: Path, views_per_dataset: int = PREVIEW_VIEWS):
         ]
         rows.append(np.concatenate(tiles, axis=1))
     if not rows:
-        raise ValueError(f"{world}: no decodable images found in the world's native folders")
+        raise WorldError(f"{world}: no decodable images found in the world's native folders")
     width = max(r.shape[1] for r in rows)
     rows = [np.pad(r, ((0, 4), (0, width - r.shape[1]), (0, 0)), constant_values=32) for r in rows]
     return np.concatenate(rows, axis=0)
@@ -161,13 +163,8 @@ def synth_preview_command(world: Path, out: Path, views: int) -> None:
     from PIL import Image
 
     if not (world / "world.json").is_file():
-        raise click.ClickException(
-            f"{world} has no world.json; create a world with `relightanyone synth` first"
-        )
-    try:
-        sheet = build_contact_sheet(world, views)
-    except ValueError as error:
-        raise click.ClickException(str(error)) from None
+        raise WorldError(f"{world} has no world.json; create a world with `relightanyone synth` first")
+    sheet = build_contact_sheet(world, views)
     out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(sheet).save(out)
     click.echo(f"wrote {out} ({sheet.shape[1]}x{sheet.shape[0]})")

@@ -32,6 +32,7 @@ import numpy as np
 
 from relightanyone.synth.d1_faceolat import d1_rig_lights
 from relightanyone.synth.envmap import olat_relight_weights, procedural_envmaps, write_exr
+from relightanyone.synth.errors import WorldError
 from relightanyone.synth.presets import Preset, get_preset
 from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render
 from relightanyone.synth.subject import make_subject
@@ -102,16 +103,16 @@ def check_parameters(preset: Preset, datasets: tuple[str, ...]) -> None:
 def prepare_output(out: Path, overwrite: bool) -> None:
     """Refuse a non-empty folder unless ``overwrite``; overwrite only removes what looks like a world."""
     if out.exists() and not out.is_dir():
-        raise ValueError(f"{out} exists and is not a folder; choose another --out")
+        raise WorldError(f"{out} exists and is not a folder; choose another --out")
     if out.is_dir() and any(out.iterdir()):
         if not overwrite:
-            raise ValueError(
+            raise WorldError(
                 f"{out} is not empty; pass --overwrite to replace the world in it, or choose another --out"
             )
         known = {*NATIVE_DIRS.values(), "tracking", "splits", "answers", "world.json"}
         strangers = sorted(p.name for p in out.iterdir() if p.name not in known)
         if strangers:
-            raise ValueError(
+            raise WorldError(
                 f"{out} holds files that are not part of a synthetic world ({', '.join(strangers[:5])}); "
                 "refusing to overwrite it, choose another --out"
             )
@@ -347,7 +348,8 @@ def generate_world(
 
     preset: "tiny", "demo", "paper" or a :class:`Preset`; datasets: any of d1..d4, in any order.
     workers: processes generating datasets side by side (the bytes do not depend on it).
-    Raises ValueError for unknown datasets, impossible sizes or a non-empty ``out`` without ``overwrite``.
+    Raises ValueError for unknown datasets or impossible sizes, ``WorldError`` for a non-empty ``out``
+    without ``overwrite``.
     """
     preset = resolve_preset(preset)
     requested = tuple(datasets)

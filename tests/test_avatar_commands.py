@@ -11,7 +11,7 @@ import torch
 from click.testing import CliRunner
 from helpers.sphere_world import LIGHTS, RIG_INTENSITY, SIZE, build_sphere_world, sphere_camera
 
-from relightanyone.model.avatar_cli import export_command, relight_command
+from relightanyone.cli import cli
 from relightanyone.model.fit.avatar import FittedAvatar
 from relightanyone.model.fit.fitter import FitSettings, fit_subject
 from relightanyone.render.camera import Cameras
@@ -36,8 +36,8 @@ def fitted(tmp_path_factory) -> tuple[dict[str, Path], Path, FittedAvatar]:
     return world, path, FittedAvatar.load(path)
 
 
-def _run(command, *args: str) -> tuple[int, str]:
-    result = CliRunner().invoke(command, [str(a) for a in args])
+def _run(command: str, *args: str) -> tuple[int, str]:
+    result = CliRunner().invoke(cli, [command, *(str(a) for a in args)])
     if result.exception is not None and not isinstance(result.exception, SystemExit):
         raise result.exception
     return result.exit_code, result.output
@@ -64,7 +64,7 @@ def test_export_re_renders_to_the_relit_avatar(fitted, tmp_path):
     centre = camera.centers[0].tolist()
     view = ",".join(repr(v) for v in centre)
     code, output = _run(
-        export_command,
+        "export",
         path,
         "--olat",
         2,
@@ -93,25 +93,23 @@ def test_export_re_renders_to_the_relit_avatar(fitted, tmp_path):
     assert float(expected.amax()) > 0.01
     torch.testing.assert_close(image, expected, rtol=0, atol=2e-5)
     # Default: display-referred colours (sRGB of the clipped linear colour) for a frontal view.
-    code, output = _run(export_command, path, "--olat", 2, "--view", view, "--out", tmp_path / "s.ply")
+    code, output = _run("export", path, "--olat", 2, "--view", view, "--out", tmp_path / "s.ply")
     assert code == 0, output
     srgb = read_gaussian_ply(tmp_path / "s.ply")["colours"]
     torch.testing.assert_close(srgb, linear_to_srgb(splats["colours"].clamp(0, 1)), rtol=0, atol=2e-6)
-    code, output = _run(export_command, path, "--fitted-lighting", "--out", tmp_path / "f.ply")
+    code, output = _run("export", path, "--fitted-lighting", "--out", tmp_path / "f.ply")
     assert code == 0 and "view from" in output, output
 
 
 def test_olat_and_point_light_at_the_rig_light_give_the_same_frames(fitted, tmp_path):
     _, path, avatar = fitted
-    code, output = _run(
-        relight_command, path, "--olat", 1, "--exr", "--no-progress", "--out", tmp_path / "olat"
-    )
+    code, output = _run("relight", path, "--olat", 1, "--exr", "--no-progress", "--out", tmp_path / "olat")
     assert code == 0, output
     x, y, z = LIGHTS[1]
     explicit = f"{x},{y},{z},{RIG_INTENSITY},{RIG_INTENSITY},{RIG_INTENSITY}"
     for name, spec in (("explicit", explicit), ("default", f"{x},{y},{z}")):
         code, output = _run(
-            relight_command, path, "--point-light", spec, "--exr", "--no-progress", "--out", tmp_path / name
+            "relight", path, "--point-light", spec, "--exr", "--no-progress", "--out", tmp_path / name
         )
         assert code == 0, output
     # Cameras of the fitted rows (the avatar's metadata), one frame each, equal to the avatar's own render.
@@ -128,7 +126,7 @@ def test_olat_and_point_light_at_the_rig_light_give_the_same_frames(fitted, tmp_
     )
     # A different light gives a different image: the comparison above can fail.
     code, _ = _run(
-        relight_command, path, "--point-light", "0,0,1", "--exr", "--no-progress", "--out", tmp_path / "other"
+        "relight", path, "--point-light", "0,0,1", "--exr", "--no-progress", "--out", tmp_path / "other"
     )
     assert code == 0 and not torch.allclose(_exr(tmp_path / "other" / "cam00_point.exr"), olat, atol=1e-4)
 
@@ -141,7 +139,7 @@ def test_orbit_and_rotating_environment_write_frames_sheet_and_strips(fitted, tm
 
     _, path, _ = fitted
     code, output = _run(
-        relight_command,
+        "relight",
         path,
         "--fitted-lighting",
         "--cameras",
@@ -173,7 +171,7 @@ def test_orbit_and_rotating_environment_write_frames_sheet_and_strips(fitted, tm
     env = 0.05 + 2.0 * (directions[..., 0].clamp(min=0) ** 2)[None].expand(3, -1, -1)  # light on the +x side
     save_envmap(tmp_path / "side.exr", env)
     code, output = _run(
-        relight_command,
+        "relight",
         path,
         "--envmap",
         tmp_path / "side.exr",
@@ -215,7 +213,7 @@ def test_orbit_and_rotating_environment_write_frames_sheet_and_strips(fitted, tm
 def test_cameras_from_another_dataset_subject(fitted, tmp_path):
     world, path, _ = fitted
     code, output = _run(
-        relight_command,
+        "relight",
         path,
         "--olat",
         0,
@@ -254,15 +252,15 @@ def test_bad_inputs_give_clear_errors(fitted, tmp_path):
         ((path, "--olat", 0, "--device", "toaster"), "'toaster' is not a torch device"),
     ]
     for args, message in cases:
-        code, output = _run(relight_command, *args, "--no-progress", *out)
+        code, output = _run("relight", *args, "--no-progress", *out)
         assert code != 0 and message in " ".join(output.split()), (args, output)
     # An avatar whose metadata does not name its dataset (Fitter.avatar() without fit_subject's 'data').
     bare = FittedAvatar.load(path)
     bare.metadata.pop("data")
     bare.save(tmp_path / "bare.avatar")
-    code, output = _run(relight_command, tmp_path / "bare.avatar", "--olat", 0, "--no-progress", *out)
+    code, output = _run("relight", tmp_path / "bare.avatar", "--olat", 0, "--no-progress", *out)
     assert code != 0 and "pass --data DIR --subject S" in output, output
-    code, output = _run(export_command, path, "--olat", 0, "--view", "1,2", "--out", tmp_path / "v.ply")
+    code, output = _run("export", path, "--olat", 0, "--view", "1,2", "--out", tmp_path / "v.ply")
     assert code != 0 and "--view" in output, output
     assert not (tmp_path / "v.ply").exists()
 
@@ -271,7 +269,7 @@ def test_turning_a_prefiltered_map_equals_prefiltering_the_turned_map():
     import math
 
     from relightanyone.model.fit.avatar import prefilter_for_shading
-    from relightanyone.model.fit.avatar_tools import rotate_prefiltered
+    from relightanyone.model.fit.lighting_choice import rotate_prefiltered
     from relightanyone.render.envmap import rotate_envmap_yaw
 
     env = torch.rand(3, 8, 16, generator=torch.Generator().manual_seed(3))
@@ -284,7 +282,8 @@ def test_turning_a_prefiltered_map_equals_prefiltering_the_turned_map():
 
 
 def test_frames_share_reflectance_and_splat_lightings_together_like_relight(fitted):
-    from relightanyone.model.fit.avatar_tools import NamedLighting, render_frames
+    from relightanyone.model.fit.avatar_tools import render_frames
+    from relightanyone.model.fit.lighting_choice import NamedLighting
 
     _, _, avatar = fitted
     cameras = Cameras.cat([_camera(0), _camera(3)]).with_names(["a", "b"])
@@ -302,12 +301,12 @@ def test_a_folder_of_avatars_means_its_first_avatar(fitted, tmp_path):
     """What `relightanyone fit` writes is a folder; pipelines pass it without knowing subject names."""
     _, path, _ = fitted
     args = ["--olat", 0, "--cameras", "orbit", "--count", 1, "--size", 16, "--no-progress"]
-    assert _run(relight_command, path, *args, "--out", tmp_path / "file")[0] == 0
-    code, output = _run(relight_command, path.parent, *args, "--out", tmp_path / "folder")
+    assert _run("relight", path, *args, "--out", tmp_path / "file")[0] == 0
+    code, output = _run("relight", path.parent, *args, "--out", tmp_path / "folder")
     assert code == 0 and "s02.avatar" in output
     by_file = sorted(p.read_bytes() for p in (tmp_path / "file").glob("*.png"))
     assert by_file and by_file == sorted(p.read_bytes() for p in (tmp_path / "folder").glob("*.png"))
     empty = tmp_path / "empty"
     empty.mkdir()
-    code, output = _run(relight_command, empty, *args, "--out", tmp_path / "none")
+    code, output = _run("relight", empty, *args, "--out", tmp_path / "none")
     assert code != 0 and "no *.avatar" in output

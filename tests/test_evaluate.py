@@ -146,7 +146,7 @@ def write_sphere_answers(root: Path, paths: dict) -> Path:
 
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):
-    from relightanyone.evaluation.cli import run_evaluation
+    from relightanyone.evaluation.run import run_evaluation
     from relightanyone.evaluation.tables import EvaluationInputs, EvaluationSettings
 
     root = tmp_path_factory.mktemp("evaluate")

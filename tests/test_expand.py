@@ -158,17 +158,17 @@ def test_the_ray_executor_writes_the_same_bytes(world, expanded, tmp_path):
 def test_the_command_prints_a_dry_run_plan_and_names_a_wrong_run(world, tmp_path):
     from click.testing import CliRunner
 
-    from relightanyone.pipelines.expand.command import expand_command
+    from relightanyone.cli import cli
 
     args = [str(world["flat"]), "--stage1", str(world["stage1"]), "--stage2", str(world["stage2"])]
     result = CliRunner().invoke(
-        expand_command, [*args, "--out", str(tmp_path), "--dry-run", "--subjects", "f01"]
+        cli, ["expand", *args, "--out", str(tmp_path), "--dry-run", "--subjects", "f01"]
     )
     assert result.exit_code == 0, result.output
     assert '"avatar": "fitted"' in result.output and '"images": 20' in result.output
     assert list(tmp_path.iterdir()) == []
     swapped = [str(world["flat"]), "--stage1", str(world["stage2"]), "--stage2", str(world["stage2"])]
-    result = CliRunner().invoke(expand_command, [*swapped, "--out", str(tmp_path)])
+    result = CliRunner().invoke(cli, ["expand", *swapped, "--out", str(tmp_path)])
     assert result.exit_code != 0 and "expected 'stage1'" in result.output
 
 

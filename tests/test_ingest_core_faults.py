@@ -220,6 +220,7 @@ def test_video_frames_are_decoded_in_one_pass_and_corrupt_videos_refused(tmp_pat
 
 
 def test_cli_dry_run_prints_findings_and_writes_nothing(capture, tmp_path):
+    from relightanyone.cli import cli
     from relightanyone.ingest.cli import COMMANDS
 
     out = tmp_path / "out"
@@ -240,7 +241,7 @@ def test_cli_dry_run_prints_findings_and_writes_nothing(capture, tmp_path):
     result = CliRunner().invoke(COMMANDS["ingest"], [*args, "--subjects", "s2", "--cameras", "c0,c1,c2"])
     assert result.exit_code == 0, result.output
     assert "6 rows written, 0 quarantined" in result.output
-    missing = CliRunner().invoke(COMMANDS["ingest"], ["custom", str(tmp_path), "--out", str(out)])
+    missing = CliRunner().invoke(cli, ["ingest", "custom", str(tmp_path), "--out", str(out)])
     assert missing.exit_code != 0 and "missing cameras.json" in missing.output
 
 

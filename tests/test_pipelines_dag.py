@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
+from relightanyone.cli import cli
 from relightanyone.pipelines.cli import run_command
 from relightanyone.pipelines.dag.fingerprint import HashCache, fingerprint_path
 from relightanyone.pipelines.dag.pipeline_file import PipelineError
@@ -255,7 +256,7 @@ def test_run_command_streams_stage_output_and_reports_failures(pipeline_file):
     assert "[1/3] make: running (output missing)" in result.output
     assert f"wrote {pipeline_file.parent / 'out' / 'make'}" in result.output  # the stage's own output
     assert result.output.splitlines()[-3].split()[:2] == ["make", "ran"]
-    failed = runner.invoke(run_command, [str(pipeline_file), "--var", "value=fail", "--quiet"])
+    failed = runner.invoke(cli, ["run", str(pipeline_file), "--var", "value=fail", "--quiet"])
     assert failed.exit_code == 1
     assert "stage 'make' failed with exit status 3" in failed.output and "_stage.log" in failed.output
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from relightanyone.cli import cli
 from relightanyone.format.codecs import decode_mask
 from relightanyone.format.examples import write_example_dataset
 from relightanyone.format.reader import NormalizedDataset
@@ -72,5 +73,5 @@ def test_folder_that_is_not_one_dataset_is_refused(tmp_path):
         write_example_dataset(root, name=name, subjects=("s000",))
     with pytest.raises(ExportError, match=r"holds several datasets \(one, two\)"):
         export_dataset(root, tmp_path / "x", progress=False)
-    result = CliRunner().invoke(export_dataset_command, [str(tmp_path), "--out", str(tmp_path / "y")])
+    result = CliRunner().invoke(cli, ["export-dataset", str(tmp_path), "--out", str(tmp_path / "y")])
     assert result.exit_code == 1 and "not a normalized dataset folder" in result.output

@@ -17,7 +17,7 @@ import torch
 from click.testing import CliRunner
 from helpers.stage1_world import tiny_stage1_preset, train_script, write_dataset
 
-from relightanyone.model.cli import COMMANDS
+from relightanyone.cli import cli
 from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.model.train.data import Stage1Data
 from relightanyone.model.train.held_out import evaluate_held_out
@@ -177,8 +177,9 @@ def test_render_command_swaps_lighting_codes_without_moving_geometry(trained_run
     out, _ = trained_run
     runner = CliRunner()
     result = runner.invoke(
-        COMMANDS["render"],
+        cli,
         [
+            "render",
             "stage1",
             str(out),
             "--subject",
@@ -197,8 +198,9 @@ def test_render_command_swaps_lighting_codes_without_moving_geometry(trained_run
     assert len(report["files"]) == 4 and all(Path(f).is_file() for f in report["files"])
     assert (tmp_path / "png" / "lighting_grid.png").is_file()
     orbit = runner.invoke(
-        COMMANDS["render"],
+        cli,
         [
+            "render",
             "stage1",
             str(out),
             "--subject",
@@ -213,8 +215,9 @@ def test_render_command_swaps_lighting_codes_without_moving_geometry(trained_run
     )
     assert orbit.exit_code != 0 and "several datasets" in orbit.output
     orbit = runner.invoke(
-        COMMANDS["render"],
+        cli,
         [
+            "render",
             "stage1",
             str(out),
             "--subject",
@@ -235,6 +238,6 @@ def test_train_command_reports_missing_template(tmp_path):
     dataset = write_dataset(tmp_path, "dc", subjects=1, cameras=2, size=16)
     (dataset / "template.obj").unlink()
     result = CliRunner().invoke(
-        COMMANDS["train"], ["stage1", "--data", str(dataset), "--out", str(tmp_path / "r")]
+        cli, ["train", "stage1", "--data", str(dataset), "--out", str(tmp_path / "r")]
     )
     assert result.exit_code != 0 and "template.obj" in result.output

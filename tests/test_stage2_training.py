@@ -206,13 +206,14 @@ def test_single_stage_flag_trains_through_the_same_trainer(olat_world, tmp_path)
 
 
 def test_cli_trains_stage2_and_explains_bad_input(olat_world, tmp_path):
-    from relightanyone.model.cli import COMMANDS
+    from relightanyone.cli import cli
 
     dataset, run = olat_world
     runner = CliRunner()
     result = runner.invoke(
-        COMMANDS["train"],
+        cli,
         [
+            "train",
             "stage2",
             "--data",
             str(dataset),
@@ -228,20 +229,18 @@ def test_cli_trains_stage2_and_explains_bad_input(olat_world, tmp_path):
     )
     assert result.exit_code == 0, result.output
     assert load_checkpoint(tmp_path / "cli" / "checkpoint.pt")["iteration"] == 2
-    missing = runner.invoke(
-        COMMANDS["train"], ["stage2", "--data", str(dataset), "--out", str(tmp_path / "x")]
-    )
+    missing = runner.invoke(cli, ["train", "stage2", "--data", str(dataset), "--out", str(tmp_path / "x")])
     assert missing.exit_code != 0 and "--stage1" in missing.output
     from helpers.stage1_world import write_dataset
 
     flat = write_dataset(tmp_path, "flat", subjects=1, cameras=2, size=16)
     no_rig = runner.invoke(
-        COMMANDS["train"], ["stage2", "--data", str(flat), "--single-stage", "--out", str(tmp_path / "y")]
+        cli, ["train", "stage2", "--data", str(flat), "--single-stage", "--out", str(tmp_path / "y")]
     )
     assert no_rig.exit_code != 0 and "lights.arrow" in no_rig.output
     other = write_olat_dataset(tmp_path, "other", subjects=1, cameras=1)
     unknown = runner.invoke(
-        COMMANDS["train"],
-        ["stage2", "--data", str(other), "--stage1", str(run), "--out", str(tmp_path / "z")],
+        cli,
+        ["train", "stage2", "--data", str(other), "--stage1", str(run), "--out", str(tmp_path / "z")],
     )
     assert unknown.exit_code != 0 and "not trained on dataset 'other'" in unknown.output

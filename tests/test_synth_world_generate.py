@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
+from relightanyone.cli import cli
 from relightanyone.synth.cli import COMMANDS
 from relightanyone.synth.presets import DatasetSize, get_preset
 from relightanyone.synth.world import generate_world
@@ -116,7 +117,7 @@ def test_cli_refuses_bad_datasets_and_previews_a_world(nano_world, tmp_path):
     runner = CliRunner()
     result = runner.invoke(COMMANDS["synth"], ["--out", str(tmp_path / "w"), "--datasets", "d2,d9"])
     assert result.exit_code != 0 and "d9" in result.output
-    result = runner.invoke(COMMANDS["synth"], ["--out", str(nano_world), "--datasets", "d3"])
+    result = runner.invoke(cli, ["synth", "--out", str(nano_world), "--datasets", "d3"])
     assert result.exit_code != 0 and "--overwrite" in result.output
     sheet = tmp_path / "sheet.png"
     result = runner.invoke(COMMANDS["synth-preview"], [str(nano_world), "--out", str(sheet)])
@@ -125,7 +126,7 @@ def test_cli_refuses_bad_datasets_and_previews_a_world(nano_world, tmp_path):
 
     image = Image.open(sheet)
     assert image.size[1] >= 4 * 192  # one row per dataset
-    result = runner.invoke(COMMANDS["synth-preview"], [str(tmp_path), "--out", str(sheet)])
+    result = runner.invoke(cli, ["synth-preview", str(tmp_path), "--out", str(sheet)])
     assert result.exit_code != 0 and "world.json" in result.output
 
 

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import torch
 
+from relightanyone.errors import InputError
 from relightanyone.model.networks.gaussians import TexelBinding
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
 from relightanyone.model.networks.reflectance import RelightParams, camera_centres, relight
@@ -397,13 +398,13 @@ class FittedAvatar:
         try:
             payload = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as error:  # torch raises several unrelated types for a corrupt or foreign file
-            raise ValueError(f"{path}: not a readable avatar file ({error})") from error
+            raise InputError(f"{path}: not a readable avatar file ({error})") from error
         if not isinstance(payload, dict) or payload.get("format") != AVATAR_FORMAT:
-            raise ValueError(
+            raise InputError(
                 f"{path}: field 'format' is not {AVATAR_FORMAT!r}; this is not a fitted avatar file"
             )
         if payload.get("version") != AVATAR_VERSION:
-            raise ValueError(
+            raise InputError(
                 f"{path}: avatar version {payload.get('version')!r}, this toolkit reads {AVATAR_VERSION}"
             )
         try:
@@ -434,7 +435,7 @@ class FittedAvatar:
                 metadata=json.loads(payload["metadata_json"]),
             )
         except (KeyError, TypeError, RuntimeError) as error:
-            raise ValueError(f"{path}: avatar file is incomplete or inconsistent ({error!r})") from error
+            raise InputError(f"{path}: avatar file is incomplete or inconsistent ({error!r})") from error
 
     def to(self, device: torch.device | str) -> FittedAvatar:
         """A copy with every tensor (and the stage-2 network) on ``device``."""

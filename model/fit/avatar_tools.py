@@ -1,12 +1,10 @@
-"""Cameras, lightings, frames and files for relighting and exporting fitted avatars.
+"""Cameras, frames and files for relighting and exporting fitted avatars.
 
-The ``relight`` and ``export`` commands (:mod:`relightanyone.model.avatar_cli`) are thin wrappers
-around these functions:
+What the ``relight`` and ``export`` commands (:mod:`relightanyone.model.fit.relight`) are made of:
 
 * cameras: the dataset rows the avatar was fitted from, any subject of a normalized dataset, or an orbit
   around the head centre (:func:`orbit_cameras_around`);
-* lightings: an OLAT light of the avatar's rig, point lights given on the command line, the fitted input
-  lighting, or an environment map (optionally turned about the vertical axis in N steps);
+* frames: every camera under every lighting (:mod:`relightanyone.model.fit.lighting_choice`);
 * outputs: sRGB PNG frames (optional linear EXR), a contact sheet, an animated strip (WebP, GIF or MP4),
   and the 3DGS PLY export (:mod:`relightanyone.model.fit.ply`).
 """
@@ -14,7 +12,6 @@ around these functions:
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,18 +20,18 @@ import numpy as np
 import torch
 
 from relightanyone.align.colour import linear_to_srgb
+from relightanyone.errors import InputError
 from relightanyone.format.preview import render_contact_sheet
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.model.fit.avatar import (
     FittedAvatar,
     check_pinhole_cameras,
     relight_views,
-    resolve_lighting,
 )
+from relightanyone.model.fit.lighting_choice import NamedLighting, safe_name
 from relightanyone.model.networks.render import orbit_cameras, to_display
 from relightanyone.render.camera import Cameras
-from relightanyone.render.envmap import PrefilteredEnvmap, load_envmap, rotate_envmap_yaw, save_envmap
-from relightanyone.render.lights import PointLights
+from relightanyone.render.envmap import PrefilteredEnvmap, save_envmap
 
 ORBIT_ELEVATION_DEG = 10.0
 ORBIT_DISTANCE_RADII = 6.0  # camera distance in head radii: a portrait-lens perspective
@@ -43,81 +40,6 @@ HEAD_OPACITY = 0.1  # Gaussians at least this opaque define the head's extent
 HEAD_QUANTILE = 0.99  # stray Gaussians beyond this quantile of distances do not widen the framing
 LIGHTINGS_PER_PASS = 8  # relit colour sets splatted together: 3 channels each, bounded memory
 AUTO_EXPOSURE_TARGET = 0.9  # auto exposure maps the 99th percentile of lit pixels to this value
-
-
-@dataclass(frozen=True)
-class NamedLighting:
-    """A lighting with the label its frames are named by (e.g. ``olat-003``, ``studio-rot005``)."""
-
-    label: str
-    lighting: object  # PointLights | DirectionalLights | PrefilteredEnvmap
-
-
-def parse_floats(text: str, lengths: Sequence[int], what: str) -> list[float]:
-    """``"x,y,z"`` -> floats; raises ValueError naming ``what`` unless the count is one of ``lengths``."""
-    try:
-        values = [float(part) for part in text.replace(" ", "").split(",") if part != ""]
-    except ValueError as error:
-        raise ValueError(f"{what} {text!r}: not comma-separated numbers") from error
-    if len(values) not in lengths or not all(math.isfinite(v) for v in values):
-        counts = " or ".join(str(n) for n in lengths)
-        raise ValueError(f"{what} {text!r}: expected {counts} finite comma-separated numbers")
-    return values
-
-
-def point_lights_from_specs(specs: Sequence[str], default_intensity: torch.Tensor) -> PointLights:
-    """Point lights from ``x,y,z[,r,g,b]`` strings (canonical metres, linear RGB radiant intensity).
-
-    A light without ``r,g,b`` gets ``default_intensity`` (3,), the mean light of the avatar's rig.
-    """
-    positions, intensities = [], []
-    for spec in specs:
-        values = parse_floats(spec, (3, 6), "--point-light")
-        if len(values) == 6 and min(values[3:]) < 0:
-            raise ValueError(f"--point-light {spec!r}: intensities r,g,b must be >= 0")
-        positions.append(values[:3])
-        intensities.append(values[3:] if len(values) == 6 else default_intensity.tolist())
-    if not positions:
-        raise ValueError("--point-light: give at least one light as x,y,z[,r,g,b]")
-    return PointLights(
-        torch.tensor(positions, dtype=torch.float32), torch.tensor(intensities, dtype=torch.float32)
-    )
-
-
-def rig_mean_intensity(rig: PointLights) -> torch.Tensor:
-    """(3,) mean RGB intensity of the rig's lights: the default brightness of a new point light."""
-    return rig.intensities.float().mean(dim=0)
-
-
-def rotate_prefiltered(env: PrefilteredEnvmap, angle_rad: float) -> PrefilteredEnvmap:
-    """A prefiltered map turned about +y (``rotate_envmap_yaw`` on every level).
-
-    The angular filter commutes with a turn about the vertical axis, so this equals prefiltering the turned
-    map (exactly for whole-column shifts at every level) without filtering again.
-    """
-
-    levels = tuple(rotate_envmap_yaw(level, angle_rad) for level in env.levels)
-    return PrefilteredEnvmap(levels=levels, sigma_step=env.sigma_step)
-
-
-def envmap_lightings(path: Path, rotations: int = 1) -> list[NamedLighting]:
-    """An environment map, or ``rotations`` copies of it turned by ``360° i / rotations`` about +y."""
-
-    if rotations < 1:
-        raise ValueError(f"--rotate must be >= 1, got {rotations}")
-    prefiltered = resolve_lighting(load_envmap(path))
-    stem = safe_name(Path(path).stem)
-    if rotations == 1:
-        return [NamedLighting(stem, prefiltered)]
-    return [
-        NamedLighting(f"{stem}-rot{i:03d}", rotate_prefiltered(prefiltered, 2 * math.pi * i / rotations))
-        for i in range(rotations)
-    ]
-
-
-def safe_name(text: str) -> str:
-    """A file-name-safe version of a camera or lighting name."""
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_") or "unnamed"
 
 
 def head_extent(avatar: FittedAvatar) -> tuple[torch.Tensor, float]:
@@ -129,7 +51,7 @@ def head_extent(avatar: FittedAvatar) -> tuple[torch.Tensor, float]:
     distances = (points - centre).norm(dim=1)
     radius = float(torch.quantile(distances, HEAD_QUANTILE)) if len(distances) else 0.0
     if not radius > 0:
-        raise ValueError("the avatar has no Gaussians away from its head centre; cannot frame it")
+        raise InputError("the avatar has no Gaussians away from its head centre; cannot frame it")
     return centre, radius
 
 
@@ -154,11 +76,11 @@ def orbit_cameras_around(
     """
 
     if count < 1 or size < 2:
-        raise ValueError(f"an orbit needs --count >= 1 and --size >= 2, got {count} and {size}")
+        raise InputError(f"an orbit needs --count >= 1 and --size >= 2, got {count} and {size}")
     centre, radius = head_extent(avatar)
     distance = ORBIT_DISTANCE_RADII * radius if distance is None else float(distance)
     if distance <= radius:
-        raise ValueError(f"orbit distance {distance:.3f} m is inside the head (radius {radius:.3f} m)")
+        raise InputError(f"orbit distance {distance:.3f} m is inside the head (radius {radius:.3f} m)")
     # A sphere of radius r at distance d projects to a disc of radius f r / sqrt(d² - r²).
     focal = ORBIT_FILL * size * math.sqrt(distance**2 - radius**2) / radius
     K = np.array([[focal, 0.0, (size - 1) / 2], [0.0, focal, (size - 1) / 2], [0.0, 0.0, 1.0]])
@@ -185,13 +107,13 @@ def dataset_cameras(
     if keys is not None:
         missing = [k for k in keys if k not in dataset]
         if missing:
-            raise ValueError(
+            raise InputError(
                 f"{dataset.path}: no image rows {missing[:4]}; was the dataset rewritten since the fit?"
             )
         rows = [dataset.row(k) for k in keys]
     else:
         if subject not in dataset.subjects:
-            raise ValueError(
+            raise InputError(
                 f"{dataset.path}: no subject {subject!r}; it has {', '.join(dataset.subjects[:12])}"
             )
         selected = dataset.select(subjects=subject, patterns="full") or dataset.select(subjects=subject)
@@ -222,12 +144,12 @@ def fitted_cameras(avatar: FittedAvatar, source: str | Path | None = None) -> Ca
     keys = metadata.get("keys")
     where = f"{source}: " if source else ""
     if not data or not keys:
-        raise ValueError(
+        raise InputError(
             f"{where}the avatar's metadata does not name the dataset it was fitted from "
             "('data' and 'keys'); pass --data DIR --subject S to take cameras from a dataset"
         )
     if not Path(data).is_dir():
-        raise ValueError(
+        raise InputError(
             f"{where}the avatar was fitted from {data}, which is not there any more; "
             "pass --data DIR --subject S to take cameras from a dataset"
         )
@@ -350,7 +272,7 @@ def write_strip(path: Path, frames: Sequence[np.ndarray], fps: float = 12.0) -> 
     if not frames:
         raise ValueError("an animated strip needs at least one frame")
     if fps <= 0:
-        raise ValueError(f"--fps must be positive, got {fps}")
+        raise InputError(f"--fps must be positive, got {fps}")
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in (".webp", ".gif"):

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.model.fit.avatar import FittedAvatar, avatar_from_decoded
 from relightanyone.model.fit.views import FitViews, load_fit_views
@@ -80,11 +81,11 @@ class FitSettings:
 
     def __post_init__(self) -> None:
         if self.inversion_iterations < 0 or self.finetune_iterations < 0:
-            raise ValueError("fit iterations must be >= 0")
+            raise InputError("fit iterations must be >= 0")
         if self.views_per_step < 1 or self.locality_codes < 1:
-            raise ValueError("views_per_step and locality_codes must be >= 1")
+            raise InputError("views_per_step and locality_codes must be >= 1")
         if not 0.0 <= self.locality_min_fraction <= 1.0:
-            raise ValueError(f"locality_min_fraction must be in [0, 1], got {self.locality_min_fraction}")
+            raise InputError(f"locality_min_fraction must be in [0, 1], got {self.locality_min_fraction}")
 
 
 @dataclass
@@ -123,13 +124,13 @@ def load_relightable_model(stage1_run: Path, stage2_run: Path) -> RelightableMod
     info = json.loads(info_path.read_text())
     checkpoint = load_checkpoint(stage2_run / CHECKPOINT_NAME)
     if checkpoint.get("single_stage"):
-        raise ValueError(
+        raise InputError(
             f"{stage2_run}: a single-stage baseline run; fitting needs a stage-2 run on a stage-1 model"
         )
     run = load_run(stage1_run)
     dataset_name = checkpoint["dataset"]
     if dataset_name not in run.datasets:
-        raise ValueError(
+        raise InputError(
             f"{stage2_run}: stage 2 was trained on {dataset_name!r}, which stage-1 run {stage1_run} "
             f"does not know ({run.datasets}); pass the stage-1 run stage 2 was trained on"
         )
@@ -147,7 +148,7 @@ def load_relightable_model(stage1_run: Path, stage2_run: Path) -> RelightableMod
     stage2.load_state_dict(checkpoint["model"])
     rows = NormalizedDataset(dataset_path).lights()
     if not rows:
-        raise ValueError(
+        raise InputError(
             f"{dataset_path}: lights.arrow has no rows; the fit models the unknown lighting with that rig"
         )
     columns = {name: [row[name] for row in rows] for name in rows[0]}
@@ -514,7 +515,7 @@ def fit_subject(
         views.tracked_vertices is not None
         and views.tracked_vertices.shape != model.stage1.mesh_decoder.template_vertices.shape
     ):
-        raise ValueError(
+        raise InputError(
             f"{data}: tracked mesh of {subject!r} frame {views.frame} has {views.tracked_vertices.shape[0]} "
             f"vertices, the model's template has {model.stage1.mesh_decoder.template_vertices.shape[0]}"
         )

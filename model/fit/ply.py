@@ -25,6 +25,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relightanyone.errors import InputError
+
 SH_C0 = 0.28209479177387814
 MAX_SH_DEGREE = 3
 # Opacities are stored as logits: exact 0 or 1 would become infinite, so they are kept this far inside.
@@ -168,19 +170,19 @@ def read_gaussian_ply(path: str | Path) -> dict[str, torch.Tensor]:
     try:
         ply = PlyData.read(str(path))
     except (PlyParseError, ValueError, OSError, EOFError) as error:
-        raise ValueError(f"{path}: not a readable PLY file ({error})") from error
+        raise InputError(f"{path}: not a readable PLY file ({error})") from error
     if "vertex" not in ply:
-        raise ValueError(f"{path}: no 'vertex' element; a Gaussian PLY stores one Gaussian per vertex")
+        raise InputError(f"{path}: no 'vertex' element; a Gaussian PLY stores one Gaussian per vertex")
     vertex = ply["vertex"].data
     present = set(vertex.dtype.names or ())
     required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", *(f"scale_{i}" for i in range(3))]
     required += [f"rot_{i}" for i in range(4)]
     missing = [name for name in required if name not in present]
     if missing:
-        raise ValueError(f"{path}: vertex element lacks Gaussian properties {missing}")
+        raise InputError(f"{path}: vertex element lacks Gaussian properties {missing}")
     rest_names = sorted((n for n in present if n.startswith("f_rest_")), key=lambda n: int(n[7:]))
     if len(rest_names) % 3:
-        raise ValueError(f"{path}: {len(rest_names)} f_rest properties is not a multiple of 3 (RGB)")
+        raise InputError(f"{path}: {len(rest_names)} f_rest properties is not a multiple of 3 (RGB)")
 
     def stack(names: list[str]) -> torch.Tensor:
         if not names:

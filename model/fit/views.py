@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from relightanyone.align.colour import read_learned_colour_matrix
+from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import make_mesh_key
 
@@ -61,13 +62,13 @@ def load_fit_views(
     import cv2
 
     if image_scale <= 0:
-        raise ValueError(f"image_scale must be positive, got {image_scale}")
+        raise InputError(f"image_scale must be positive, got {image_scale}")
     dataset = NormalizedDataset(dataset_dir)
     if subject not in dataset.subjects:
-        raise ValueError(f"{dataset.path}: no subject {subject!r}; it has {', '.join(dataset.subjects[:12])}")
+        raise InputError(f"{dataset.path}: no subject {subject!r}; it has {', '.join(dataset.subjects[:12])}")
     keys = dataset.select(subjects=subject, patterns=pattern)
     if not keys:
-        raise ValueError(
+        raise InputError(
             f"{dataset.path}: subject {subject!r} has no rows with pattern {pattern!r}; "
             f"the dataset's patterns are {', '.join(dataset.patterns[:12])}"
         )
@@ -87,16 +88,16 @@ def load_fit_views(
         by_camera = {r.camera: r for r in rows}
         missing = [c for c in cameras if c not in by_camera]
         if missing:
-            raise ValueError(
+            raise InputError(
                 f"{dataset.path}: subject {subject!r} frame {frame} pattern {pattern!r} has no camera "
                 f"{missing}; it has {sorted(by_camera)}"
             )
         rows = [by_camera[c] for c in cameras]
     if not rows:
-        raise ValueError(f"{dataset.path}: subject {subject!r} has no {pattern!r} rows at frame {frame}")
+        raise InputError(f"{dataset.path}: subject {subject!r} has no {pattern!r} rows at frame {frame}")
     sizes = {(r.width, r.height) for r in rows}
     if len(sizes) != 1:
-        raise ValueError(
+        raise InputError(
             f"{dataset.path}: the chosen views have several image sizes {sorted(sizes)}; pick cameras of one size"
         )
     matrix = read_learned_colour_matrix(dataset.path)

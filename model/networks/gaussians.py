@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from relightanyone.errors import InputError
+
 GEOMETRY_CHANNELS = 11
 COLOUR_CHANNELS = 3
 # Scales outside [MIN_SCALE, MAX_SCALE] texel spacings are clamped and penalised by the scale regulariser.
@@ -73,7 +75,7 @@ class TexelBinding:
             )
         valid_flat = torch.as_tensor(valid).reshape(-1).bool()
         if not bool(valid_flat.any()):
-            raise ValueError("UV binding has no valid texel: the template mesh's UVs cover no texel centre")
+            raise InputError("UV binding has no valid texel: the template mesh's UVs cover no texel centre")
         valid_index = torch.nonzero(valid_flat).squeeze(1)
         return cls(
             valid_index=valid_index,

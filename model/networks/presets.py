@@ -281,6 +281,12 @@ STAGE2_PRESETS: dict[str, Stage2Preset] = {
 }
 
 
+def with_overrides(preset: Stage1Preset | Stage2Preset, **changes) -> Stage1Preset | Stage2Preset:
+    """``preset`` with the fields given a value (not None) replaced: a command line's overrides of a preset."""
+    given = {name: value for name, value in changes.items() if value is not None}
+    return preset.replace(**given) if given else preset
+
+
 def get_stage2_preset(name: str) -> Stage2Preset:
     """The stage-2 preset called ``name`` (tiny, demo, small, paper)."""
     try:

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from relightanyone.errors import InputError
 from relightanyone.render.lights import PointLights
 from relightanyone.render.sh import lambertian_transfer, sh_count
 from relightanyone.render.shading import (
@@ -193,7 +194,7 @@ def pattern_light_indices(
         index = int(pattern[len(OLAT_PREFIX) :])
         if index < light_count and not light_patterns:
             return [index]
-    raise ValueError(
+    raise InputError(
         f"{source}: image pattern {pattern!r} matches no rig light in lights.arrow ({light_count} lights); "
         "stage 2 trains on 'full' and 'olat-KKK' frames of an OLAT dataset"
     )

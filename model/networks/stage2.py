@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from relightanyone.errors import InputError
 from relightanyone.model.networks.decoders import LEAKY_SLOPE, START_RESOLUTION
 from relightanyone.model.networks.gaussians import TexelBinding, gather_texels
 from relightanyone.model.networks.reflectance import (
@@ -170,7 +171,7 @@ def head_frame(template_vertices: torch.Tensor) -> tuple[torch.Tensor, float]:
     centre = 0.5 * (template_vertices.min(dim=0).values + template_vertices.max(dim=0).values)
     radius = float((template_vertices - centre).norm(dim=-1).max())
     if radius <= 0:
-        raise ValueError("the template mesh is a single point; cannot define a head centre and radius")
+        raise InputError("the template mesh is a single point; cannot define a head centre and radius")
     return centre, radius
 
 

@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from relightanyone.errors import InputError
+
 CHECKPOINT_NAME = "checkpoint.pt"
 
 
@@ -65,4 +67,4 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
         # Checkpoints hold NumPy random states, which the weights-only unpickler refuses.
         return torch.load(path, map_location="cpu", weights_only=False)
     except Exception as error:  # torch raises several unrelated types for a corrupt file
-        raise ValueError(f"{path}: unreadable checkpoint ({error}); delete it to start over") from error
+        raise InputError(f"{path}: unreadable checkpoint ({error}); delete it to start over") from error

@@ -9,26 +9,29 @@ it, and the main run then trains with lighting codes on the aligned colours.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 
 from relightanyone.align.colour import COLOUR_ALIGNMENT_FILENAME, write_learned_colour_matrix
+from relightanyone.errors import InputError
 from relightanyone.format.dataset_view import link_dataset_view
 from relightanyone.format.reader import load_manifest
 from relightanyone.model.networks.presets import Stage1Preset
 from relightanyone.model.train.stage1 import Stage1Config, train_stage1
 
 WARMUP_DIR = "warmup"
+ALIGNMENT_REPORT = "colour_alignment.json"  # align-colour's report, beside the dataset views
 
 
 def correction_from_render_matrix(render_to_dataset: np.ndarray) -> np.ndarray:
     """C (3, 3) mapping shared colour to the dataset's -> M = C⁻¹ mapping the dataset's colour to shared."""
     matrix = np.asarray(render_to_dataset, dtype=np.float64)
     if matrix.shape != (3, 3) or not np.all(np.isfinite(matrix)):
-        raise ValueError(f"learned colour matrix must be a finite 3×3, got {matrix.tolist()}")
+        raise InputError(f"learned colour matrix must be a finite 3×3, got {matrix.tolist()}")
     if abs(np.linalg.det(matrix)) < 1e-8:
-        raise ValueError(f"learned colour matrix is singular ({matrix.tolist()}); train the warm-up longer")
+        raise InputError(f"learned colour matrix is singular ({matrix.tolist()}); train the warm-up longer")
     return np.linalg.inv(matrix)
 
 
@@ -80,7 +83,7 @@ def run_colour_warmup(
     import torch.distributed as dist
 
     if not uncalibrated:
-        raise ValueError("the colour warm-up needs at least one uncalibrated dataset (--uncalibrated NAME)")
+        raise InputError("the colour warm-up needs at least one uncalibrated dataset (--uncalibrated NAME)")
     warmup_preset = preset.replace(iterations=preset.warmup_iterations)
     config = Stage1Config(
         data=[Path(d) for d in data],
@@ -116,3 +119,44 @@ def run_colour_warmup(
     if dist.is_initialized():
         dist.barrier()  # the main run's loaders must see the matrices
     return metrics if is_main else {}
+
+
+def align_colours(
+    data: list[Path],
+    uncalibrated: tuple[str, ...],
+    preset: Stage1Preset,
+    out: Path,
+    seed: int = 0,
+    eval_views_per_dataset: int | None = None,
+) -> dict:
+    """The colour warm-up into ``out`` with the sources untouched (what ``relightanyone align-colour`` does).
+
+    Writes ``out/warmup/`` (the warm-up run), ``out/<dataset>/`` for every dataset in ``data`` (a view of
+    it, carrying ``colour_alignment.json`` for the uncalibrated ones) and ``out/colour_alignment.json``,
+    the report it returns: the datasets, the matrices and held-out PSNR/SSIM without and with them.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    names = {load_manifest(Path(d)).info.name: Path(d) for d in data}
+    unknown = sorted(set(uncalibrated) - set(names))
+    if unknown:
+        raise InputError(f"--uncalibrated {unknown} is not among the --data datasets {sorted(names)}")
+    metrics = run_colour_warmup(
+        list(data),
+        out,
+        preset,
+        tuple(uncalibrated),
+        seed,
+        eval_views_per_dataset=eval_views_per_dataset,
+        views_dir=out,
+    )
+    for name, folder in names.items():
+        if name not in uncalibrated:
+            link_dataset_view(folder, out / name)
+    report = {
+        "uncalibrated": sorted(uncalibrated),
+        "datasets": {name: str(folder) for name, folder in names.items()},
+        **{k: v for k, v in metrics.items() if k != "losses"},
+    }
+    (out / ALIGNMENT_REPORT).write_text(json.dumps(report, indent=2, sort_keys=True) + "\n")
+    return report

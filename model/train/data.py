@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from relightanyone.align.colour import read_learned_colour_matrix
+from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import make_mesh_key
 from relightanyone.model.train.sampling import (
@@ -64,12 +65,12 @@ class Stage1Data:
     ):
 
         if not dataset_dirs:
-            raise ValueError("no dataset given: pass at least one normalized dataset folder with --data")
+            raise InputError("no dataset given: pass at least one normalized dataset folder with --data")
         self.dirs = [Path(d) for d in dataset_dirs]
         self.datasets = [NormalizedDataset(d) for d in self.dirs]
         self.names = [ds.name for ds in self.datasets]
         if len(set(self.names)) != len(self.names):
-            raise ValueError(f"datasets must have distinct names, got {self.names}")
+            raise InputError(f"datasets must have distinct names, got {self.names}")
         self.template_path = self._check_templates()
         self.colour_matrices = [self._learned_matrix(d) if apply_learned_colour else None for d in self.dirs]
         self.subjects: list[str] = []
@@ -79,7 +80,7 @@ class Stage1Data:
         for index, dataset in enumerate(self.datasets):
             train, held_out = self._split_views(index, dataset, held_out_per_subject)
             if not train:
-                raise ValueError(
+                raise InputError(
                     f"{dataset.path}: no full-on training views (rows with pattern 'full' and split 'train')"
                 )
             self.train_views.append(train)
@@ -97,7 +98,7 @@ class Stage1Data:
             )
         counts = {str(p): len(load_obj(p).vertices) for p in paths}
         if len(set(counts.values())) > 1:
-            raise ValueError(
+            raise InputError(
                 f"datasets trained together must share one template topology; vertex counts: {counts}"
             )
         return paths[0]
@@ -200,7 +201,7 @@ class Stage1Data:
             samples.append(sample)
         shapes = {s["image"].shape for s in samples}
         if len(shapes) > 1:
-            raise ValueError(f"views of one batch differ in size {sorted(shapes)}; train with a crop size")
+            raise InputError(f"views of one batch differ in size {sorted(shapes)}; train with a crop size")
         tracked = [self.tracked_vertices(v) for v in views]
         vertex_count = next((t.shape[0] for t in tracked if t is not None), 0)
         return {

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.model.networks.gaussians import Gaussians, TexelBinding
 from relightanyone.model.networks.presets import Stage1Preset
@@ -26,6 +27,8 @@ from relightanyone.render.rasterize import rasterize
 from relightanyone.render.uv_binding import UVBinding
 
 FOREGROUND_ALPHA = 0.5
+LIGHTING_GRID_NAME = "lighting_grid.png"
+RENDER_REPORT_NAME = "render_report.json"
 ORBIT_ELEVATION_DEG = 10.0
 
 
@@ -50,11 +53,11 @@ class Stage1Run:
         hint = (
             "it exists in several datasets, name it as <dataset>/<subject>" if matches else "unknown subject"
         )
-        raise ValueError(f"{self.path}: {hint}: {subject!r}; known: {', '.join(self.subjects[:12])}...")
+        raise InputError(f"{self.path}: {hint}: {subject!r}; known: {', '.join(self.subjects[:12])}...")
 
     def dataset_index(self, name: str) -> int:
         if name not in self.datasets:
-            raise ValueError(
+            raise InputError(
                 f"{self.path}: unknown dataset {name!r} for --lighting-code; known: {', '.join(self.datasets)}"
             )
         return self.datasets.index(name)
@@ -106,7 +109,7 @@ def subject_cameras(
     dataset = NormalizedDataset(run.dataset_dirs[run.datasets.index(dataset_name)])
     keys = dataset.select(subjects=subject, patterns="full")
     if not keys:
-        raise ValueError(f"{dataset.path}: no full-on rows of subject {subject!r}")
+        raise InputError(f"{dataset.path}: no full-on rows of subject {subject!r}")
     first_frame = min(int(k.split("/")[2]) for k in keys)
     rows = [dataset.row(k) for k in keys if int(k.split("/")[2]) == first_frame]
     width, height = rows[0].width, rows[0].height
@@ -284,3 +287,27 @@ def _fit(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     from PIL import Image
 
     return np.asarray(Image.fromarray(image).resize((size[1], size[0]), Image.BILINEAR))
+
+
+def render_run(
+    run_dir: Path,
+    out: Path,
+    subject: str | None = None,
+    lighting_code: str | None = None,
+    cameras: str = "dataset",
+    orbit_count: int = 8,
+    lighting_grid: bool = False,
+) -> dict:
+    """What ``relightanyone render stage1`` writes into ``out``: ``subject``'s PNGs
+    (:func:`render_subject`), with ``lighting_grid`` also ``lighting_grid.png``
+    (:func:`lighting_alignment_grid`), and ``render_report.json``, the reports it returns."""
+    run = load_run(run_dir)
+    out = Path(out)
+    reports = {}
+    if subject is not None:
+        reports["subject"] = render_subject(run, subject, out, lighting_code, cameras, orbit_count)
+    if lighting_grid:
+        reports["lighting_grid"] = lighting_alignment_grid(run, out / LIGHTING_GRID_NAME)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / RENDER_REPORT_NAME).write_text(json.dumps(reports, indent=2) + "\n")
+    return reports

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from relightanyone.errors import InputError
+
 BATCH_STREAM = 0
 CROP_STREAM = 1
 BACKGROUND_STREAM = 3  # 2 is the stage-2 trainer's pattern stream
@@ -47,7 +49,7 @@ def balanced_batch(
     Datasets are drawn uniformly (with replacement), then a view uniformly within the dataset.
     """
     if not views_per_dataset or min(views_per_dataset) <= 0:
-        raise ValueError(f"every dataset needs at least one training view, got counts {views_per_dataset}")
+        raise InputError(f"every dataset needs at least one training view, got counts {views_per_dataset}")
     rng = iteration_generator(seed, iteration, BATCH_STREAM)
     datasets = rng.integers(0, len(views_per_dataset), size=batch_size)
     return [(int(d), int(rng.integers(0, views_per_dataset[d]))) for d in datasets]

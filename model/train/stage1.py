@@ -25,6 +25,7 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 
+from relightanyone.errors import InputError
 from relightanyone.model.networks.gaussians import TexelBinding
 from relightanyone.model.networks.presets import Stage1Preset
 from relightanyone.model.networks.render import comparison_strip, render_gaussians, to_display
@@ -106,7 +107,7 @@ def build_model(
 
     unknown = sorted(set(uncalibrated) - set(data.names))
     if unknown:
-        raise ValueError(f"--uncalibrated names {unknown} are not among the datasets {data.names}")
+        raise InputError(f"--uncalibrated names {unknown} are not among the datasets {data.names}")
     mesh = load_obj(template_path)
     uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, preset.uv_size)
     binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
@@ -143,13 +144,13 @@ def _check_resumable(
     saved = checkpoint["preset"]
     differing = [name for name in ARCHITECTURE_FIELDS if saved[name] != getattr(preset, name)]
     if differing or checkpoint["subjects"] != data.subjects or checkpoint["datasets"] != data.names:
-        raise ValueError(
+        raise InputError(
             f"{path}: the checkpoint was trained with other settings or data "
             f"({'preset fields ' + ', '.join(differing) if differing else 'subjects/datasets differ'}); "
             "use another --out folder or --no-resume"
         )
     if checkpoint["warmup"] != config.warmup or checkpoint["seed"] != config.seed:
-        raise ValueError(
+        raise InputError(
             f"{path}: the checkpoint is from a run with another seed or warm-up setting; use another --out"
         )
 

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from relightanyone.align.colour import read_learned_colour_matrix
+from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import make_mesh_key
 from relightanyone.model.networks.gaussians import TexelBinding
@@ -140,7 +141,7 @@ class OlatFrames:
         self.name = self.dataset.name
         rows = self.dataset.lights()
         if not rows:
-            raise ValueError(
+            raise InputError(
                 f"{self.path}: no lights.arrow; stage 2 needs an OLAT dataset (kind 'olat') with its rig"
             )
         columns = {name: [row[name] for row in rows] for name in rows[0]}
@@ -158,7 +159,7 @@ class OlatFrames:
             subject_names = [f"{self.name}/{s}" for s in subjects]
         missing = [s for s in subjects if f"{self.name}/{s}" not in subject_names]
         if missing:
-            raise ValueError(
+            raise InputError(
                 f"{self.path}: training subjects {missing} have no identity code in the stage-1 run; "
                 "train stage 1 with this dataset first"
             )
@@ -180,7 +181,7 @@ class OlatFrames:
             )
             (self.full_on if pattern == FULL_ON_PATTERN else self.olat).append(view)
         if not self.full_on and not self.olat:
-            raise ValueError(f"{self.path}: no 'full' or 'olat-KKK' training rows")
+            raise InputError(f"{self.path}: no 'full' or 'olat-KKK' training rows")
 
     def draw(self, batch_size: int, full_on_fraction: float, seed: int, iteration: int) -> list[OlatView]:
         """The views of one iteration: full-on with probability ``full_on_fraction``, else OLAT (stateless)."""
@@ -260,13 +261,13 @@ class Stage2Trainer:
     def _build_stage2(self) -> None:
 
         if self.config.stage1_run is None:
-            raise ValueError(
+            raise InputError(
                 "stage 2 needs the frozen stage-1 run (--stage1 RUN); use --single-stage for the baseline"
             )
         run = load_run(self.config.stage1_run)
         name = load_manifest(self.config.data).info.name
         if name not in run.datasets:
-            raise ValueError(
+            raise InputError(
                 f"{self.config.stage1_run}: stage 1 was not trained on dataset {name!r} "
                 f"(it knows {run.datasets}); its lighting code z_l is needed, so train stage 1 with it"
             )
@@ -469,7 +470,7 @@ class Stage2Trainer:
             or checkpoint["single_stage"] != self.config.single_stage
             or checkpoint["subjects"] != self.frames.subjects
         ):
-            raise ValueError(
+            raise InputError(
                 f"{path}: the checkpoint is from another mode, architecture ({', '.join(differing) or 'same'}) "
                 "or subject list; use another --out folder or --no-resume"
             )

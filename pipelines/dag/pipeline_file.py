@@ -34,13 +34,15 @@ from typing import Any
 
 import yaml
 
+from relightanyone.errors import InputError
+
 STAGE_NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 VARIABLE_PATTERN = re.compile(r"\$(\$|\{([A-Za-z_][A-Za-z0-9_.-]*)\})")
 STAGE_KEYS = ("run", "command", "output", "inputs", "after", "env", "description")
 BUILTIN_STAGE_VARIABLES = ("output", "stage")
 
 
-class PipelineError(ValueError):
+class PipelineError(InputError):
     """A pipeline file is malformed; the message names the file, line and key."""
 
 

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
 
+from relightanyone.errors import RelightAnyoneError
 from relightanyone.pipelines.dag.fingerprint import (
     Fingerprint,
     HashCache,
@@ -52,7 +53,7 @@ from relightanyone.pipelines.dag.record import (
 )
 
 
-class StageFailed(RuntimeError):
+class StageFailed(RelightAnyoneError, RuntimeError):
     """A stage's command failed or could not start; the message says which and where its log is."""
 
 

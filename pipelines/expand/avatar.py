@@ -14,6 +14,7 @@ from pathlib import Path
 
 import torch
 
+from relightanyone.errors import InputError
 from relightanyone.model.fit.avatar import FittedAvatar, decoded_avatar
 from relightanyone.model.fit.fitter import Fitter
 from relightanyone.model.fit.views import load_fit_views
@@ -51,7 +52,7 @@ def fitted_avatar(
     views = load_fit_views(source_dir, subject, frame, None, "full", image_scale)
     template = model.stage1.mesh_decoder.template_vertices
     if views.tracked_vertices is not None and views.tracked_vertices.shape != template.shape:
-        raise ValueError(
+        raise InputError(
             f"{source_dir}: tracked mesh of {subject!r} frame {frame} has {views.tracked_vertices.shape[0]} "
             f"vertices, the stage-1 template has {template.shape[0]}; the expansion needs one topology"
         )

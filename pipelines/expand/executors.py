@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from relightanyone.errors import DependencyError
 from relightanyone.pipelines.expand.task import run_expand_task
 
 EXECUTORS = ("local", "ray")
@@ -84,7 +85,7 @@ def _run_ray(writer, settings, tasks, workers, bar, images_per_view) -> dict:
     try:
         import ray
     except ImportError:
-        raise RuntimeError("the ray executor needs Ray: pip install 'relightanyone[ray]'") from None
+        raise DependencyError("the ray executor needs Ray: pip install 'relightanyone[ray]'") from None
 
     if not ray.is_initialized():
         ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from relightanyone.errors import InputError
 from relightanyone.format.arrow_io import sha256_file
 from relightanyone.format.schema import Provenance
 from relightanyone.model.train.checkpoint import load_checkpoint
@@ -24,10 +25,10 @@ def run_info(run: Path, stage: str) -> dict:
     try:
         info = json.loads(path.read_text())
     except json.JSONDecodeError as error:
-        raise ValueError(f"{path}: not valid JSON ({error})") from None
+        raise InputError(f"{path}: not valid JSON ({error})") from None
     if not isinstance(info, dict) or info.get("stage") != stage:
         found = info.get("stage") if isinstance(info, dict) else None
-        raise ValueError(f"{path}: field 'stage' is {found!r}, expected {stage!r}; pass a {stage} run here")
+        raise InputError(f"{path}: field 'stage' is {found!r}, expected {stage!r}; pass a {stage} run here")
     return info
 
 
@@ -36,7 +37,7 @@ def stage2_olat_dataset(stage2: Path) -> Path:
     try:
         return Path(info["dataset"]["path"])
     except (KeyError, TypeError) as error:
-        raise ValueError(f"{Path(stage2) / 'run.json'}: field 'dataset.path' is missing ({error})") from None
+        raise InputError(f"{Path(stage2) / 'run.json'}: field 'dataset.path' is missing ({error})") from None
 
 
 def load_model_early(stage1: Path, stage2: Path) -> list[str]:
@@ -47,7 +48,7 @@ def load_model_early(stage1: Path, stage2: Path) -> list[str]:
         cache_relightable_model(Path(stage1).resolve(), Path(stage2).resolve())
         return list(load_checkpoint(Path(stage1) / CHECKPOINT_FILE)["subjects"])
     except (KeyError, TypeError, RuntimeError) as error:
-        raise ValueError(
+        raise InputError(
             f"stage-1 run {stage1} and stage-2 run {stage2} do not load together ({error!r}); "
             "pass the stage-1 run the stage-2 run was trained on"
         ) from None

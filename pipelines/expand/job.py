@@ -18,9 +18,11 @@ from __future__ import annotations
 import hashlib
 import re
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from relightanyone.errors import InputError
 from relightanyone.format.arrow_io import sha256_file
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import (
@@ -31,6 +33,7 @@ from relightanyone.format.schema import (
     fingerprint_config,
 )
 from relightanyone.format.shards import ShardWriter
+from relightanyone.model.device import resolve_device
 from relightanyone.model.fit.fitter import FitSettings
 from relightanyone.pipelines.expand.executors import run_expand_tasks
 from relightanyone.pipelines.expand.inputs import (
@@ -50,7 +53,8 @@ class ExpandSettings:
     """Everything a task needs; plain paths and numbers, so it pickles to process-pool and Ray workers.
 
     fit_iterations: (inversion, finetuning) steps for subjects stage 1 does not know.
-    device: "cpu" or "cuda[:i]" (resolved, never "auto"). threads: torch intra-op threads per task.
+    device: a torch device name such as "cpu" or "cuda:1" (resolved, never "auto").
+    threads: torch intra-op threads per task.
     """
 
     source: Path
@@ -129,19 +133,6 @@ class ExpansionPlan:
         }
 
 
-def resolve_device(device: str) -> str:
-    """``auto`` -> ``cuda`` when CUDA is available, else ``cpu``; explicit devices are checked."""
-    import torch
-
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"--device {device}: CUDA is not available on this machine; use --device cpu")
-    if device != "cpu" and not device.startswith("cuda"):
-        raise ValueError(f"--device must be auto, cpu or cuda[:N], got {device!r}")
-    return device
-
-
 def task_name(subject: str) -> str:
     """The subject itself when it is a valid part name, else a readable prefix plus a short hash."""
     if TASK_NAME.match(subject) and not subject.endswith(".tmp"):
@@ -156,8 +147,8 @@ def plan_expansion(
     stage2: Path,
     parent: Path,
     name: str | None = None,
-    subjects: list[str] | None = None,
-    splits: list[str] | None = None,
+    subjects: Sequence[str] | None = None,
+    splits: Sequence[str] | None = None,
     envmaps: list[Path] | None = None,
     fit_iterations: tuple[int, int] = (300, 300),
     fit_image_scale: float = 1.0,
@@ -171,9 +162,9 @@ def plan_expansion(
     source_data = NormalizedDataset(source)
     name = name or f"{source_data.name}-olat"
     if not name or "/" in name:
-        raise ValueError(f"--name {name!r} must be a non-empty folder name without '/'")
+        raise InputError(f"--name {name!r} must be a non-empty folder name without '/'")
     if min(fit_iterations) < 0:
-        raise ValueError(f"--fit-iterations must be >= 0, got {fit_iterations}")
+        raise InputError(f"--fit-iterations must be >= 0, got {fit_iterations}")
     envmaps = [Path(p) for p in envmaps or []]
     for path in envmaps:
         if not path.is_file():
@@ -181,7 +172,7 @@ def plan_expansion(
     olat_dir = stage2_olat_dataset(stage2)
     light_rows = NormalizedDataset(olat_dir).lights()
     if not light_rows:
-        raise ValueError(f"{olat_dir}: the stage-2 run's OLAT dataset has no lights.arrow rows")
+        raise InputError(f"{olat_dir}: the stage-2 run's OLAT dataset has no lights.arrow rows")
     inputs = {
         "source_manifest_sha256": sha256_file(source_data.path / MANIFEST_NAME),
         "source_config_fingerprint": source_data.manifest.info.config_fingerprint,
@@ -198,12 +189,12 @@ def plan_expansion(
     columns = {c: index.column(c).to_pylist() for c in ("subject", "frame", "pattern", "split")}
     full_rows = [i for i, p in enumerate(columns["pattern"]) if p == "full"]
     if not full_rows:
-        raise ValueError(f"{source_data.path}: no full-on rows (pattern 'full') to expand")
+        raise InputError(f"{source_data.path}: no full-on rows (pattern 'full') to expand")
     available = sorted({columns["subject"][i] for i in full_rows})
     wanted = available if not subjects else list(subjects)
     missing = [s for s in wanted if s not in available]
     if missing:
-        raise ValueError(
+        raise InputError(
             f"{source_data.path}: no full-on rows of subjects {missing}; it has {', '.join(available[:20])}"
         )
     tasks = []
@@ -243,10 +234,10 @@ def plan_expansion(
             )
         )
     if not tasks:
-        raise ValueError(f"{source_data.path}: no subject has full-on rows in splits {splits}")
+        raise InputError(f"{source_data.path}: no subject has full-on rows in splits {splits}")
     names = [t.name for t in tasks]
     if len(set(names)) != len(names):
-        raise ValueError(f"{source_data.path}: subjects map to clashing part names {names}")
+        raise InputError(f"{source_data.path}: subjects map to clashing part names {names}")
 
     parent = Path(parent)
     settings = ExpandSettings(
@@ -259,14 +250,14 @@ def plan_expansion(
         fit_iterations=(int(fit_iterations[0]), int(fit_iterations[1])),
         fit_image_scale=float(fit_image_scale),
         all_frames=all_frames,
-        device=resolve_device(device),
+        device=str(resolve_device(device)),
         seed=int(seed),
         lightings_per_pass=int(lightings_per_pass),
     )
     rig_patterns = [row["pattern"] for row in sorted(light_rows, key=lambda r: r["index"])]
     patterns = [*rig_patterns, "full", *(envmap_pattern(p) for p in envmaps)]
     if len(set(patterns)) != len(patterns):
-        raise ValueError(f"pattern names are not unique: {patterns}; rename the environment map files")
+        raise InputError(f"pattern names are not unique: {patterns}; rename the environment map files")
     config = {
         **inputs,
         "tasks": [asdict(t) for t in tasks],

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import torch
 
+from relightanyone.errors import InputError
 from relightanyone.model.fit.avatar import prefilter_for_shading, relight_views
 from relightanyone.render.envmap import PrefilteredEnvmap, load_envmap
 
@@ -55,7 +56,7 @@ def expansion_lightings(
         lightings.append(NamedLighting(envmap_pattern(path), chain))
     names = [item.pattern for item in lightings]
     if len(set(names)) != len(names):
-        raise ValueError(f"pattern names are not unique: {names}; rename the environment map files")
+        raise InputError(f"pattern names are not unique: {names}; rename the environment map files")
     return lightings
 
 

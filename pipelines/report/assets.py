@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.errors import InputError
 from relightanyone.format.preview import linear_to_srgb_preview
 from relightanyone.pipelines.report.html import slug
 from relightanyone.render.envmap import load_envmap
@@ -22,7 +23,7 @@ HDR_SUFFIXES = (".exr", ".hdr")
 IMAGE_SUFFIXES = BROWSER_IMAGE_SUFFIXES + HDR_SUFFIXES
 
 
-class UnreadablePicture(ValueError):
+class UnreadablePicture(InputError):
     """A picture file exists but cannot be decoded; the message names the file."""
 
 

@@ -16,6 +16,8 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from relightanyone.errors import DependencyError, RelightAnyoneError
+
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 INSTALL_HINT = "install it with `apt-get install chromium` (Debian/Ubuntu) or put chromium on PATH"
 QUIET_FLAGS = (
@@ -30,8 +32,12 @@ QUIET_FLAGS = (
 )
 
 
-class BrowserUnavailable(RuntimeError):
+class BrowserUnavailable(DependencyError):
     """No Chromium executable was found; the message says how to install one."""
+
+
+class BrowserError(RelightAnyoneError, RuntimeError):
+    """Chromium ran but did not check the page or write the screenshot; the message says what it printed."""
 
 
 @dataclass
@@ -81,7 +87,7 @@ def check_in_browser(
 ) -> BrowserCheck:
     """Load ``index_html`` in headless Chromium; count decoded images; optionally save a screenshot PNG.
 
-    Raises ``BrowserUnavailable`` without a browser, ``RuntimeError`` when the page script did not run.
+    Raises ``BrowserUnavailable`` without a browser, ``BrowserError`` when the page script did not run.
     """
     chromium = chromium or find_chromium()
     url = Path(index_html).resolve().as_uri()
@@ -89,7 +95,7 @@ def check_in_browser(
     dom = result.stdout
     loaded, total = _body_attribute(dom, "data-images-loaded"), _body_attribute(dom, "data-images-total")
     if loaded is None or total is None:
-        raise RuntimeError(
+        raise BrowserError(
             f"{index_html}: the page's image check did not run in {chromium} (exit {result.returncode}); "
             f"stderr: {result.stderr.strip()[-800:]}"
         )
@@ -109,7 +115,7 @@ def check_in_browser(
             timeout_s,
         )
         if not Path(screenshot).is_file():
-            raise RuntimeError(
+            raise BrowserError(
                 f"{chromium} wrote no screenshot to {screenshot}: {shot.stderr.strip()[-800:]}"
             )
     return BrowserCheck(int(loaded), int(total), missing, sections, dom)

@@ -1,6 +1,7 @@
 """The ``relightanyone report`` command (registered by the pipelines layer as ``report_command``).
 
-Heavy imports stay inside the command so that ``relightanyone --help`` stays instant.
+The report builder (image codecs, OpenCV) is imported inside the command so that ``relightanyone --help``
+stays instant.
 """
 
 from __future__ import annotations
@@ -9,29 +10,31 @@ from pathlib import Path
 
 import click
 
+from relightanyone.cli_options import ANY_PATH, out_option, parsed_by, quiet_option
 
-def parse_titled(value: str, option: str) -> tuple[str, Path]:
+
+def parse_titled(value: str) -> tuple[str, Path]:
     """``"Title=path"`` -> (title, path); a bare existing path takes its file name (without suffix) as title."""
     if Path(value).exists() or "=" not in value:
         path = Path(value)
         return path.stem or path.name or value, path
     title, path = value.split("=", 1)
     if not title.strip() or not path.strip():
-        raise click.BadParameter(f"{value!r}: expected TITLE=PATH", param_hint=option)
+        raise ValueError(f"{value!r}: expected TITLE=PATH")
     return title.strip(), Path(path.strip())
 
 
+def titled_paths(values: tuple[str, ...]) -> list[tuple[str, Path]]:
+    """Every value of a repeated ``TITLE=PATH`` option, parsed."""
+    return [parse_titled(value) for value in values]
+
+
 @click.command("report")
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False, path_type=Path),
-    required=True,
-    help="Folder to write index.html and assets/ into (other files there are left alone).",
-)
+@out_option("Folder to write index.html and assets/ into (other files there are left alone).")
 @click.option(
     "--datasets",
     multiple=True,
-    type=click.Path(path_type=Path),
+    type=ANY_PATH,
     help="Folder of normalized datasets (one per sub-folder) or one dataset folder (repeatable).",
 )
 @click.option(
@@ -39,18 +42,19 @@ def parse_titled(value: str, option: str) -> tuple[str, Path]:
     "images",
     multiple=True,
     metavar="TITLE=PATH",
+    callback=parsed_by(titled_paths),
     help="A picture to show (contact sheet, world preview, ...); PNG/JPEG/WebP/GIF/AVIF, or EXR/HDR "
     "tone-mapped to sRGB (repeatable).",
 )
 @click.option(
     "--lighting-grid",
-    type=click.Path(path_type=Path),
+    type=ANY_PATH,
     help="The lighting-alignment grid of a stage-1 run (lighting_grid.png from render-stage1).",
 )
 @click.option(
     "--expanded",
     multiple=True,
-    type=click.Path(path_type=Path),
+    type=ANY_PATH,
     help="An expanded (synthetic-olat) dataset: one OLAT contact sheet per subject (repeatable).",
 )
 @click.option(
@@ -58,18 +62,20 @@ def parse_titled(value: str, option: str) -> tuple[str, Path]:
     "strips",
     multiple=True,
     metavar="TITLE=PATH",
+    callback=parsed_by(titled_paths),
     help="An environment-map relighting strip: a PNG sheet, an animated WebP/GIF, or a folder of them "
     "(repeatable).",
 )
 @click.option(
     "--evaluation",
-    type=click.Path(path_type=Path),
+    type=ANY_PATH,
     help="Evaluation folder with report.md, evaluation.json and grids/*.png.",
 )
 @click.option(
     "--metrics",
     multiple=True,
     metavar="TITLE=PATH",
+    callback=parsed_by(titled_paths),
     help="A JSON file of stage metrics (e.g. a stage-1 run's metrics.json) shown as tables (repeatable).",
 )
 @click.option("--title", default="relightanyone report", show_default=True, help="Page title.")
@@ -89,16 +95,16 @@ def parse_titled(value: str, option: str) -> tuple[str, Path]:
     is_flag=True,
     help="Open the page in headless Chromium afterwards and fail unless every image loads.",
 )
-@click.option("--quiet", is_flag=True, help="No progress bars.")
+@quiet_option()
 def report_command(
     out: Path,
     datasets: tuple[Path, ...],
-    images: tuple[str, ...],
+    images: list[tuple[str, Path]],
     lighting_grid: Path | None,
     expanded: tuple[Path, ...],
-    strips: tuple[str, ...],
+    strips: list[tuple[str, Path]],
     evaluation: Path | None,
-    metrics: tuple[str, ...],
+    metrics: list[tuple[str, Path]],
     title: str,
     max_subjects: int,
     olat_camera: str | None,
@@ -118,12 +124,12 @@ def report_command(
 
     inputs = ReportInputs(
         datasets=list(datasets),
-        pictures=[parse_titled(v, "--image") for v in images],
+        pictures=images,
         lighting_grid=lighting_grid,
         expanded=list(expanded),
-        strips=[parse_titled(v, "--strip") for v in strips],
+        strips=strips,
         evaluation=evaluation,
-        metrics=[parse_titled(v, "--metrics") for v in metrics],
+        metrics=metrics,
         title=title,
         subject_sheets=not no_subject_sheets,
         max_subjects=max_subjects,
@@ -136,12 +142,9 @@ def report_command(
         click.secho(f"warning: {message}", fg="yellow", err=True)
     click.echo(f"wrote {result.index} ({result.images} image(s), {len(result.warnings)} warning(s))")
     if check:
-        from relightanyone.pipelines.report.browser import BrowserUnavailable, check_in_browser
+        from relightanyone.pipelines.report.browser import check_in_browser
 
-        try:
-            seen = check_in_browser(result.index)
-        except (BrowserUnavailable, RuntimeError) as error:
-            raise click.ClickException(str(error)) from None
+        seen = check_in_browser(result.index)
         if not seen.ok:
             raise click.ClickException(
                 f"{result.index}: {seen.loaded} of {seen.total} image(s) loaded in Chromium; missing: "

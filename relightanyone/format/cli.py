@@ -1,4 +1,8 @@
-"""Commands of the format layer: ``validate`` and ``inspect`` (heavy imports stay inside the commands)."""
+"""Commands of the format layer: ``validate`` and ``inspect``.
+
+OpenCV and the dataset reader are imported inside the commands so that ``relightanyone --help`` stays
+instant.
+"""
 
 from __future__ import annotations
 
@@ -6,9 +10,11 @@ from pathlib import Path
 
 import click
 
+from relightanyone.cli_options import EXISTING_FOLDER, FILE, out_option
+
 
 @click.command("validate")
-@click.argument("path", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("path", type=EXISTING_FOLDER)
 @click.option(
     "--no-decode", is_flag=True, help="Skip decoding every image and mask (hashes and metadata only)."
 )
@@ -48,13 +54,8 @@ def _summary_lines(dataset) -> list[str]:
 
 
 @click.command("inspect")
-@click.argument("path", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option(
-    "--out",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Write a PNG contact sheet of sample images with mask outlines here.",
-)
+@click.argument("path", type=EXISTING_FOLDER)
+@out_option("Write a PNG contact sheet of sample images with mask outlines here.", file=True, required=False)
 @click.option(
     "--samples",
     type=click.IntRange(1, 256),
@@ -64,7 +65,7 @@ def _summary_lines(dataset) -> list[str]:
 )
 @click.option(
     "--overlay",
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=FILE,
     default=None,
     help="Write a PNG of the tracked mesh reprojected over sample images (datasets written by ingest).",
 )

@@ -21,13 +21,15 @@ import struct
 
 import numpy as np
 
+from relightanyone.errors import InputError
+
 PNG16_LINEAR_MAX = 4.0
 FLOAT16_MAX = 65504.0
 RAW_F16_MAGIC = b"RF16"
 _RAW_HEADER = struct.Struct("<4sIII")
 
 
-class CodecError(ValueError):
+class CodecError(InputError):
     """An image or mask cannot be encoded or decoded; the message says which and why."""
 
 

@@ -13,6 +13,8 @@ import os
 import shutil
 from pathlib import Path
 
+from relightanyone.errors import InputError
+
 RUNNER_FILES = frozenset({"_stage.json", "_stage.log"})
 
 
@@ -26,7 +28,7 @@ def link_dataset_view(source: Path, dest: Path, exclude: frozenset[str] = frozen
     if not (source / "manifest.json").is_file():
         raise FileNotFoundError(f"{source}: not a normalized dataset (no manifest.json); ingest it first")
     if dest.resolve() == source.resolve():
-        raise ValueError(f"{dest}: a view cannot replace the dataset it shows")
+        raise InputError(f"{dest}: a view cannot replace the dataset it shows")
     if dest.is_symlink() or dest.is_file():
         dest.unlink()
     elif dest.exists():

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
+from relightanyone.errors import RelightAnyoneError
 from relightanyone.format.arrow_io import read_batch_at, read_table_file
 from relightanyone.format.codecs import decode_image, decode_mask
 from relightanyone.format.schema import (
@@ -38,7 +39,7 @@ from relightanyone.format.schema import (
 )
 
 
-class IncompleteDatasetError(RuntimeError):
+class IncompleteDatasetError(RelightAnyoneError, RuntimeError):
     """The folder is not a complete dataset (no manifest, or files it lists are missing)."""
 
 

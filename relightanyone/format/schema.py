@@ -37,6 +37,8 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
+from relightanyone.errors import InputError
+
 FORMAT_VERSION = 1
 DATASET_KINDS = ("olat", "flat", "synthetic-olat")
 IMAGE_ENCODINGS = ("png16", "exr-half", "raw-f16")
@@ -136,7 +138,7 @@ INDEX_SCHEMA = _with_metadata(
 INDEX_COLUMNS = ("key", "subject", "frame", "camera", "pattern", "split")
 
 
-class SchemaError(ValueError):
+class SchemaError(InputError):
     """A row or manifest does not follow the format; the message names the item and the field."""
 
 

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset
 
 
@@ -53,7 +54,7 @@ class NormalizedTorchDataset(torch.utils.data.Dataset):
     def __getitem__(self, index: int) -> dict[str, Any]:
         row, image, mask = self.source.decoded(self.keys[index])
         if image.shape[:2] != (row.height, row.width) or mask.shape != (row.height, row.width):
-            raise ValueError(
+            raise InputError(
                 f"{self.source.path}: row {row.key!r} declares {row.width}x{row.height} but decodes to "
                 f"image {image.shape[:2]} and mask {mask.shape}"
             )
