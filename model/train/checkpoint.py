@@ -17,8 +17,6 @@ from typing import Any
 import numpy as np
 import torch
 
-CHECKPOINT_NAME = "checkpoint.pt"
-
 
 def capture_rng_state() -> dict[str, Any]:
     """Random states of Python, NumPy (global generator) and torch (CPU, and CUDA when present)."""

@@ -37,10 +37,21 @@ MESHES_NAME = "meshes.arrow"
 LIGHTS_NAME = "lights.arrow"
 INDEX_NAME = "index.arrow"
 QUARANTINE_NAME = "quarantine.jsonl"
-# Side files ingest writes beside the shards: the template mesh of meshes.arrow and its neck mask.
+SHARD_PATTERN = "images-{:05d}.arrow"
+# Side files beside the shards: ingest's template mesh of meshes.arrow, its neck mask and its report, and
+# the learned colour matrix the colour warm-up writes into a view of the dataset.
 TEMPLATE_NAME = "template.obj"
 NECK_MASK_NAME = "template_neck_mask.txt"
-SHARD_PATTERN = "images-{:05d}.arrow"
+INGEST_REPORT_NAME = "ingest_report.json"
+COLOUR_ALIGNMENT_NAME = "colour_alignment.json"
+# The files a dataset may hold besides the manifest and the files it lists.
+UNLISTED_FILE_NAMES = (
+    QUARANTINE_NAME,
+    TEMPLATE_NAME,
+    NECK_MASK_NAME,
+    INGEST_REPORT_NAME,
+    COLOUR_ALIGNMENT_NAME,
+)
 
 
 def _unchanged(value: Any) -> Any:
@@ -524,6 +535,10 @@ class Manifest:
 
     def dumps(self) -> str:
         return json.dumps(self.to_json(), indent=2, sort_keys=False, ensure_ascii=False) + "\n"
+
+    def listed_files(self) -> list[FileEntry]:
+        """The files the manifest lists: shards, index, and the mesh and light tables when present."""
+        return [*self.shards, self.index, *(e for e in (self.meshes, self.lights) if e is not None)]
 
     @classmethod
     def from_json(cls, values: dict[str, Any], where: str = "manifest.json") -> Manifest:
