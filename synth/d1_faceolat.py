@@ -39,7 +39,7 @@ from relightanyone.synth.d1_metashape import metashape_document
 from relightanyone.synth.envmap import write_exr
 from relightanyone.synth.presets import DatasetSize, Preset
 from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render
-from relightanyone.synth.truth import CameraTruth, DatasetTruth
+from relightanyone.synth.truth import DatasetTruth
 
 NATIVE_DIR = "faceolat"
 D1_RIG_SEED = 331  # the rig is the same in every world: lights come from this seed
@@ -323,17 +323,16 @@ def generate(
         },
         2,
     )
-    return DatasetTruth(
-        dataset="d1",
-        layout="faceolat",
-        native_dir=NATIVE_DIR,
-        world_from_canonical=world_from_canonical,
-        cameras={c.name: CameraTruth(c.name, c.K, c.w2c, c.dist, c.width, c.height) for c in cameras},
-        head_poses=head_poses,
-        colour_response={c.name: response for c in cameras},
-        light_positions=lights.positions,
-        light_intensities=lights.intensities,
-        splits=dict(splits),
+    return DatasetTruth.of_rig(
+        "d1",
+        "faceolat",
+        NATIVE_DIR,
+        world_from_canonical,
+        cameras,
+        lights,
+        head_poses,
+        {c.name: response for c in cameras},
+        splits,
         extra={
             "full_on_frames": full_on_frames,
             "capture_ids": {s.name: capture_id(s.name) for s in subjects},

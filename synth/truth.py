@@ -44,6 +44,36 @@ class DatasetTruth:
     splits: dict[str, str]  # subject -> "train" | "test"
     extra: dict = field(default_factory=dict)  # dataset-specific facts (e.g. full-on frame indices)
 
+    @classmethod
+    def of_rig(
+        cls,
+        dataset: str,
+        layout: str,
+        native_dir: str,
+        world_from_canonical: np.ndarray,
+        cameras: list,
+        lights,
+        head_poses: dict[tuple[str, int], np.ndarray],
+        colour_response: dict[str, np.ndarray],
+        splits: dict[str, str],
+        extra: dict,
+    ) -> DatasetTruth:
+        """The truth of a rendered rig: ``cameras`` as the renderer used them (each with ``name``, ``K``,
+        ``w2c``, ``dist``, ``width``, ``height``) and its point ``lights`` (``positions``, ``intensities``)."""
+        return cls(
+            dataset=dataset,
+            layout=layout,
+            native_dir=native_dir,
+            world_from_canonical=world_from_canonical,
+            cameras={c.name: CameraTruth(c.name, c.K, c.w2c, c.dist, c.width, c.height) for c in cameras},
+            head_poses=head_poses,
+            colour_response=colour_response,
+            light_positions=lights.positions,
+            light_intensities=lights.intensities,
+            splits=dict(splits),
+            extra=extra,
+        )
+
     def to_json(self) -> dict:
         return {
             "dataset": self.dataset,
