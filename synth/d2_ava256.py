@@ -47,7 +47,7 @@ from relightanyone.synth.capture import (
 from relightanyone.synth.presets import Preset
 from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render
 from relightanyone.synth.template import HeadTemplate
-from relightanyone.synth.truth import DatasetTruth
+from relightanyone.synth.truth import DatasetTruth, RenderedRig
 
 NATIVE_DIR = "ava256"
 SENSOR_SCALE = 4  # the calibration describes a sensor this many times larger than the written images
@@ -225,26 +225,17 @@ def generate(
         if subject.name == dropped["subject"]:
             dropped["frame_id"] = frame_ids[dropped["frame_index"]]
 
+    extra = {
+        "captures": captures,
+        "dropped_images": [dropped],
+        "sensor_scale": SENSOR_SCALE,
+        "image_encoding": "8-bit linear recorded RGB in AVIF (no transfer curve)",
+        "head_pose_convention": "native head space = canonical space in mm; file = head(mm) -> world(mm)",
+        "frame_key": "native frame id",
+    }
     colour_response = {name: response * EXPOSURE for name, response in responses.items()}
-    return DatasetTruth.of_rig(
-        "d2",
-        "ava256",
-        NATIVE_DIR,
-        world_from_canonical,
-        cameras,
-        lights,
-        head_poses,
-        colour_response,
-        splits,
-        extra={
-            "captures": captures,
-            "dropped_images": [dropped],
-            "sensor_scale": SENSOR_SCALE,
-            "image_encoding": "8-bit linear recorded RGB in AVIF (no transfer curve)",
-            "head_pose_convention": "native head space = canonical space in mm; file = head(mm) -> world(mm)",
-            "frame_key": "native frame id",
-        },
-    )
+    rig = RenderedRig(world_from_canonical, cameras, lights, colour_response)
+    return DatasetTruth.of_rig("d2", "ava256", NATIVE_DIR, rig, head_poses, splits, extra)
 
 
 def preview_images(native_root: Path, count: int) -> list[tuple[str, np.ndarray]]:

@@ -48,7 +48,7 @@ from relightanyone.synth.capture import (
 from relightanyone.synth.presets import Preset
 from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render, textured_quad
 from relightanyone.synth.template import HeadTemplate
-from relightanyone.synth.truth import DatasetTruth
+from relightanyone.synth.truth import DatasetTruth, RenderedRig
 
 NATIVE_DIR = "stereo_rig"
 RAW_BITS = 12
@@ -262,24 +262,15 @@ def generate(
             write_raw(root / "captures" / subject.name / f"{cam.name}.dng", result.image, cam)
             report_progress(progress)
 
+    extra = {
+        "chart_reference_linear_srgb": chart_reference_linear_srgb().tolist(),
+        "raw_normalisation": "recorded_linear = (dng - black) / (white - black)",
+        "colmap_principal_point": "OpenCV cx, cy + 0.5",
+        "frame_key": "0 (one frame per subject)",
+    }
     colour_response = {name: response * EXPOSURE for name, response in responses.items()}
-    return DatasetTruth.of_rig(
-        "d3",
-        "stereo-rig",
-        NATIVE_DIR,
-        world_from_canonical,
-        cameras,
-        lights,
-        head_poses,
-        colour_response,
-        splits,
-        extra={
-            "chart_reference_linear_srgb": chart_reference_linear_srgb().tolist(),
-            "raw_normalisation": "recorded_linear = (dng - black) / (white - black)",
-            "colmap_principal_point": "OpenCV cx, cy + 0.5",
-            "frame_key": "0 (one frame per subject)",
-        },
-    )
+    rig = RenderedRig(world_from_canonical, cameras, lights, colour_response)
+    return DatasetTruth.of_rig("d3", "stereo-rig", NATIVE_DIR, rig, head_poses, splits, extra)
 
 
 def expected_renders(preset: Preset) -> int:

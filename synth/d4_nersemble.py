@@ -46,7 +46,7 @@ from relightanyone.synth.capture import (
 from relightanyone.synth.presets import Preset
 from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render, textured_quad
 from relightanyone.synth.template import HeadTemplate
-from relightanyone.synth.truth import DatasetTruth
+from relightanyone.synth.truth import DatasetTruth, RenderedRig
 
 NATIVE_DIR = "nersemble"
 SERIALS = (
@@ -246,25 +246,16 @@ def generate(
         for cam in cameras:
             encode_video(folder / "sequences" / SEQUENCE / "images" / f"cam_{cam.name}.mp4", frames[cam.name])
 
+    extra = {
+        "sequence": SEQUENCE,
+        "fps": FPS,
+        "video": "libx264 yuv444p crf 0, sRGB-encoded recorded colour",
+        "background_plate": {"z_m": -PLATE_DISTANCE_M, "albedo": PLATE_ALBEDO},
+        "frame_key": "video frame index",
+    }
     colour_response = {name: response * EXPOSURE for name, response in responses.items()}
-    return DatasetTruth.of_rig(
-        "d4",
-        "nersemble",
-        NATIVE_DIR,
-        world_from_canonical,
-        cameras,
-        lights,
-        head_poses,
-        colour_response,
-        splits,
-        extra={
-            "sequence": SEQUENCE,
-            "fps": FPS,
-            "video": "libx264 yuv444p crf 0, sRGB-encoded recorded colour",
-            "background_plate": {"z_m": -PLATE_DISTANCE_M, "albedo": PLATE_ALBEDO},
-            "frame_key": "video frame index",
-        },
-    )
+    rig = RenderedRig(world_from_canonical, cameras, lights, colour_response)
+    return DatasetTruth.of_rig("d4", "nersemble", NATIVE_DIR, rig, head_poses, splits, extra)
 
 
 def preview_images(native_root: Path, count: int) -> list[tuple[str, np.ndarray]]:
