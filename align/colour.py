@@ -29,7 +29,6 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     import colour
 
-COLOUR_ALIGNMENT_FILENAME = "colour_alignment.json"
 COLOUR_ALIGNMENT_FORMAT = "relightanyone.colour_alignment"
 COLOUR_ALIGNMENT_VERSION = 1
 
@@ -420,24 +419,16 @@ def ccm_error(measured: Any, reference: Any, M: Any, offset: Any = None) -> Colo
 
 
 # ---------------------------------------------------------------------------------------------------------
-# Learned per-dataset matrix (colour_alignment.json beside manifest.json)
+# Learned per-dataset matrix: the document (the dataset format decides where a dataset keeps it)
 # ---------------------------------------------------------------------------------------------------------
 
 
-def write_learned_colour_matrix(
-    dataset_dir: str | os.PathLike, M: Any, info: Mapping[str, Any] | None = None
-) -> Path:
-    """Write the learned per-dataset 3×3 to ``<dataset_dir>/colour_alignment.json`` (atomic, deterministic).
+def colour_alignment_text(M: Any, info: Mapping[str, Any] | None = None) -> str:
+    """The learned per-dataset 3×3 as its JSON document, keys sorted so the same inputs give the same bytes.
 
     The matrix maps the dataset's linear RGB into the shared colour space: ``aligned = M @ rgb``.
     ``info`` is free-form JSON (e.g. reference dataset, training step, residual).
-
-    Returns:
-        The path written.
     """
-    dataset_dir = Path(dataset_dir)
-    if not dataset_dir.is_dir():
-        raise FileNotFoundError(f"{dataset_dir}: dataset folder does not exist")
     M = _as_matrix(M, (3, 3), "learned colour matrix")
     document = {
         "format": COLOUR_ALIGNMENT_FORMAT,
@@ -447,35 +438,28 @@ def write_learned_colour_matrix(
         "info": dict(info or {}),
     }
     try:
-        text = json.dumps(document, indent=2, sort_keys=True, allow_nan=False) + "\n"
+        return json.dumps(document, indent=2, sort_keys=True, allow_nan=False) + "\n"
     except (TypeError, ValueError) as exc:
         raise ValueError(f"colour alignment info must be finite, JSON-serialisable values ({exc})") from exc
-    target = dataset_dir / COLOUR_ALIGNMENT_FILENAME
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, target)
-    return target
 
 
-def read_learned_colour_matrix(dataset_dir: str | os.PathLike) -> np.ndarray | None:
-    """Read ``<dataset_dir>/colour_alignment.json``; ``M (3, 3)`` float64, or None when the file is absent."""
-    path = Path(dataset_dir) / COLOUR_ALIGNMENT_FILENAME
-    if not path.is_file():
-        return None
+def parse_colour_alignment(data: bytes, where: str) -> np.ndarray:
+    """``M (3, 3)`` float64 of a colour-alignment document; FileFormatError naming ``where`` when the document is
+    not valid JSON, has another ``format`` or ``version``, or its ``matrix`` is not a finite 3×3."""
     try:
-        document = json.loads(path.read_text())
+        document = json.loads(data)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise FileFormatError(
-            f"{path}: not valid JSON ({exc}); delete it and re-run colour alignment"
+            f"{where}: not valid JSON ({exc}); delete it and re-run colour alignment"
         ) from exc
     if not isinstance(document, dict) or document.get("format") != COLOUR_ALIGNMENT_FORMAT:
-        raise FileFormatError(f"{path}: field 'format' must be {COLOUR_ALIGNMENT_FORMAT!r}")
+        raise FileFormatError(f"{where}: field 'format' must be {COLOUR_ALIGNMENT_FORMAT!r}")
     if document.get("version") != COLOUR_ALIGNMENT_VERSION:
         raise FileFormatError(
-            f"{path}: unsupported version {document.get('version')!r} (this toolkit reads "
+            f"{where}: unsupported version {document.get('version')!r} (this toolkit reads "
             f"{COLOUR_ALIGNMENT_VERSION})"
         )
     try:
         return _as_matrix(document.get("matrix"), (3, 3), "field 'matrix'")
     except (TypeError, ValueError) as exc:
-        raise FileFormatError(f"{path}: {exc}") from exc
+        raise FileFormatError(f"{where}: {exc}") from exc

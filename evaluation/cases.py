@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from relightanyone.align.colour import read_learned_colour_matrix
 from relightanyone.errors import InputError
 from relightanyone.evaluation.truth import (
     NativeCamera,
@@ -30,6 +29,7 @@ from relightanyone.evaluation.truth import (
     world_to_normalized,
 )
 from relightanyone.format.codecs import decode_mask
+from relightanyone.format.colour_alignment import read_learned_colour_matrix
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.render.camera import Cameras
 from relightanyone.render.lights import PointLights

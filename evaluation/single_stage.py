@@ -17,6 +17,7 @@ import torch
 
 from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset
+from relightanyone.format.schema import LIGHTS_NAME, TEMPLATE_NAME
 from relightanyone.model.fit.avatar import check_pinhole_cameras
 from relightanyone.model.fit.fitter import FitSettings, Fitter
 from relightanyone.model.fit.views import FitViews
@@ -30,8 +31,8 @@ from relightanyone.model.networks.reflectance import (
 )
 from relightanyone.model.networks.single_stage import SingleStageModel
 from relightanyone.model.networks.stage2 import texel_mesh_normals, view_directions
-from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
-from relightanyone.model.train.stage2 import TEMPLATE_NAME
+from relightanyone.model.train.checkpoint import load_checkpoint
+from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
 from relightanyone.render.lights import PointLights, full_on_rig_from_table, olat_rig_from_table
 from relightanyone.render.mesh import load_obj
 from relightanyone.render.rasterize import rasterize
@@ -61,7 +62,7 @@ def load_single_stage_run(run: str | Path) -> SingleStageRun:
     checkpoint = load_checkpoint(checkpoint_path)
     if not checkpoint.get("single_stage"):
         raise InputError(f"{run}: a stage-2 run, not a single-stage baseline (trained with --single-stage)")
-    info = json.loads((run / "run.json").read_text())
+    info = json.loads((run / RUN_INFO_NAME).read_text())
     stage1_preset = Stage1Preset.from_json(checkpoint["stage1_preset"])
     preset = Stage2Preset.from_json(checkpoint["preset"])
     mesh = load_obj(run / TEMPLATE_NAME)
@@ -80,8 +81,8 @@ def load_single_stage_run(run: str | Path) -> SingleStageRun:
     if not rows:
         raise InputError(f"{dataset_path}: lights.arrow has no rows; the baseline fit needs the OLAT rig")
     columns = {name: [row[name] for row in rows] for name in rows[0]}
-    rig = olat_rig_from_table(columns, source=str(dataset_path / "lights.arrow"))
-    full_on_rig = full_on_rig_from_table(columns, rig, source=str(dataset_path / "lights.arrow"))
+    rig = olat_rig_from_table(columns, source=str(dataset_path / LIGHTS_NAME))
+    full_on_rig = full_on_rig_from_table(columns, rig, source=str(dataset_path / LIGHTS_NAME))
     model = model.eval().requires_grad_(False)
     return SingleStageRun(model, preset, rig, checkpoint["dataset"], run, full_on_rig)
 

@@ -46,7 +46,8 @@ from relightanyone.format.schema import make_mesh_key
 from relightanyone.model.fit.avatar import check_pinhole_cameras, decoded_avatar, relight_views
 from relightanyone.model.fit.fitter import FitSettings, Fitter, load_relightable_model
 from relightanyone.model.fit.views import load_fit_views
-from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
+from relightanyone.model.train.checkpoint import load_checkpoint
+from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
 from relightanyone.render.lights import PointLights
 
 # true_image(dataset, subject, camera, light) -> (image (H, W, 3), mask (H, W)) in the row's geometry.
@@ -483,7 +484,7 @@ class Evaluation:
         }
         seen = []
         for label, run in runs.items():
-            info_path = None if run is None else Path(run) / "run.json"
+            info_path = None if run is None else Path(run) / RUN_INFO_NAME
             if info_path is not None and info_path.is_file():
                 info = json.loads(info_path.read_text())
                 # A stage-2 run lists every stage-1 subject (its code order) but trains on one dataset.
@@ -495,7 +496,7 @@ class Evaluation:
     def _stage1_dataset_names(self) -> list[str]:
         import json
 
-        info = json.loads((Path(self.inputs.stage1) / "run.json").read_text())
+        info = json.loads((Path(self.inputs.stage1) / RUN_INFO_NAME).read_text())
         return [d["name"] for d in info["datasets"]]
 
     def run(self) -> dict:

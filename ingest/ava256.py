@@ -40,6 +40,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from relightanyone.align.geometry import fold_head_pose
+from relightanyone.ingest.adapter_common import adapter_plan, root_relative
 from relightanyone.ingest.calibration import (
     AVA_FULL_SENSOR,
     CalibrationError,
@@ -204,10 +205,7 @@ def _plan_capture(capture: Path, root: Path, options: AdapterOptions) -> Subject
 
     subject = subject_of(capture)
     plan = SubjectPlan(subject=subject, split=options.split_of(subject), views=[])
-    rel = capture.relative_to(root).as_posix() if capture != root else ""
-
-    def relpath(part: str) -> str:
-        return f"{rel}/{part}" if rel else part
+    relpath = root_relative(capture, root)
 
     try:
         rig = read_krt_json(capture / CALIBRATION, units="mm")
@@ -347,15 +345,6 @@ def plan(src: Path, options: AdapterOptions) -> DatasetPlan:
         if options.frames is not None
         else ("all" if options.all_frames else NEUTRAL_SEGMENT),
     }
-    return DatasetPlan(
-        dataset=options.dataset_name or NAME,
-        kind=KIND,
-        layout=NAME,
-        layout_version=version,
-        source_root=str(src),
-        source_dataset=SOURCE_DATASET,
-        licence=LICENCE,
-        subjects=subjects,
-        refusals=refusals,
-        found=found,
+    return adapter_plan(
+        NAME, KIND, SOURCE_DATASET, LICENCE, version, src, options, subjects, refusals=refusals, found=found
     )

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from relightanyone.align.colour import read_faceolat_colour_matrix
+from relightanyone.ingest.adapter_common import adapter_plan
 from relightanyone.ingest.calibration import CalibrationError
 from relightanyone.ingest.metashape import read_metashape_xml
 from relightanyone.ingest.records import (
@@ -465,15 +466,15 @@ def plan(src: Path, options: AdapterOptions) -> DatasetPlan:
             )
     found["views"] = sum(len(s.views) for s in subjects)
     found["cameras"] = sorted({v.camera.name for s in subjects for v in s.views})
-    return DatasetPlan(
-        dataset=options.dataset_name or NAME,
-        kind=KIND,
-        layout=NAME,
-        layout_version=version,
-        source_root=str(src),
-        source_dataset=SOURCE_DATASET,
-        licence=LICENCE,
-        subjects=subjects,
+    return adapter_plan(
+        NAME,
+        KIND,
+        SOURCE_DATASET,
+        LICENCE,
+        version,
+        src,
+        options,
+        subjects,
         light_positions=lights.positions_mm * 1e-3,
         light_intensities=lights.intensities,
         full_on_light_intensities=lights.full_on_intensities,

@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from relightanyone.align.colour import read_nersemble_colour_calibration, read_nersemble_v1_affine
+from relightanyone.ingest.adapter_common import adapter_plan, root_relative
 from relightanyone.ingest.calibration import (
     NERSEMBLE_FULL_SENSOR,
     CalibrationError,
@@ -234,10 +235,7 @@ def _plan_v2(
 ) -> None:
 
     subject = plan.subject
-    rel = folder.relative_to(root).as_posix() if folder != root else ""
-
-    def relpath(part: str) -> str:
-        return f"{rel}/{part}" if rel else part
+    relpath = root_relative(folder, root)
 
     videos_dir = folder / "sequences" / sequence / "images"
     videos = {m.group(1): p for p in sorted(videos_dir.glob("cam_*.mp4")) if (m := _VIDEO.match(p.name))}
@@ -338,10 +336,7 @@ def _plan_v1(
 ) -> None:
 
     subject = plan.subject
-    rel = folder.relative_to(root).as_posix() if folder != root else ""
-
-    def relpath(part: str) -> str:
-        return f"{rel}/{part}" if rel else part
+    relpath = root_relative(folder, root)
 
     frame_dirs = {
         int(m.group(1)): p
@@ -481,14 +476,4 @@ def plan(src: Path, options: AdapterOptions) -> DatasetPlan:
         "alpha_maps": sum(1 for s in subjects for v in s.views if v.alpha is not None),
         "views": sum(len(s.views) for s in subjects),
     }
-    return DatasetPlan(
-        dataset=options.dataset_name or NAME,
-        kind=KIND,
-        layout=NAME,
-        layout_version=version,
-        source_root=str(src),
-        source_dataset=SOURCE_DATASET,
-        licence=LICENCE,
-        subjects=subjects,
-        found=found,
-    )
+    return adapter_plan(NAME, KIND, SOURCE_DATASET, LICENCE, version, src, options, subjects, found=found)

@@ -36,6 +36,7 @@ from relightanyone.errors import InputError
 from relightanyone.format.arrow_io import atomic_write_bytes
 from relightanyone.format.codecs import DEFAULT_IMAGE_ENCODING
 from relightanyone.format.schema import (
+    INGEST_REPORT_NAME,
     NECK_MASK_NAME,
     TEMPLATE_NAME,
     DatasetInfo,
@@ -49,6 +50,7 @@ from relightanyone.ingest.executors import map_items, run_tasks
 from relightanyone.ingest.records import DatasetPlan, SubjectPlan
 from relightanyone.ingest.subject_task import IngestSettings, SubjectTask, decoder_share
 from relightanyone.ingest.tracking import (
+    TRANSFORMS_NAME,
     AlignmentError,
     Template,
     align_subject,
@@ -64,7 +66,6 @@ CROP_MARGIN = 0.1  # of the head's projected extent, on each side
 BYTES_PER_PIXEL = {"raw-f16": 2.02, "png16": 1.98, "exr-half": 1.38}
 TRACKER_NAME = "VHAP export"
 SHIPPED_TRACKER_NAME = "meshes shipped with the capture"
-REPORT_NAME = "ingest_report.json"
 _TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
 
@@ -115,14 +116,14 @@ def check_tracking_dir(tracking_dir: Path, subjects: list[str]) -> None:
     tracking_dir = Path(tracking_dir)
     if not tracking_dir.is_dir():
         raise FileNotFoundError(f"tracking folder {tracking_dir} does not exist")
-    if not subjects or any((tracking_dir / s / "transforms.json").is_file() for s in subjects):
+    if not subjects or any((tracking_dir / s / TRANSFORMS_NAME).is_file() for s in subjects):
         return
     nested = sorted(
         p.name for p in tracking_dir.iterdir() if p.is_dir() and any((p / s).is_dir() for s in subjects)
     )
     hint = f"; the subjects are under {tracking_dir}/{nested[0]}, pass that folder" if nested else ""
     raise FileNotFoundError(
-        f"{tracking_dir} has no <subject>/transforms.json for any of the subjects "
+        f"{tracking_dir} has no <subject>/{TRANSFORMS_NAME} for any of the subjects "
         f"({', '.join(subjects[:5])}{' ...' if len(subjects) > 5 else ''}){hint}"
     )
 
@@ -419,7 +420,7 @@ def ingest_dataset(
         "source_root": str(plan.source_root),
     }
     atomic_write_bytes(
-        dataset_dir / REPORT_NAME, (json.dumps(report, indent=1, sort_keys=True) + "\n").encode()
+        dataset_dir / INGEST_REPORT_NAME, (json.dumps(report, indent=1, sort_keys=True) + "\n").encode()
     )
 
     pending = [t for t in tasks if not writer.has_part(t.task)]

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from relightanyone.align.chart import ChartNotFoundError, fit_chart_correction
+from relightanyone.ingest.adapter_common import adapter_plan
 from relightanyone.ingest.calibration import CalibrationError, from_colmap
 from relightanyone.ingest.decode import DecodeError, decode_bytes
 from relightanyone.ingest.records import (
@@ -300,15 +301,6 @@ def plan(src: Path, options: AdapterOptions) -> DatasetPlan:
         "chart_fit_worst": worst_chart_fit(residuals),
         "views": sum(len(s.views) for s in subjects),
     }
-    return DatasetPlan(
-        dataset=options.dataset_name or NAME,
-        kind=KIND,
-        layout=NAME,
-        layout_version=version,
-        source_root=str(src),
-        source_dataset=SOURCE_DATASET,
-        licence=LICENCE,
-        subjects=subjects,
-        refusals=refusals,
-        found=found,
+    return adapter_plan(
+        NAME, KIND, SOURCE_DATASET, LICENCE, version, src, options, subjects, refusals=refusals, found=found
     )

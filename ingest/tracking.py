@@ -37,6 +37,8 @@ from relightanyone.errors import InputError
 from relightanyone.ingest.calibration import from_transforms_json
 from relightanyone.render.mesh import faces_touching, read_obj, read_obj_vertices
 
+# File names of a VHAP export: the tracking of one subject, and the topology's template and neck mask.
+TRANSFORMS_NAME = "transforms.json"
 NECK_MASK_NAMES = ("neck_mask.txt", "template_neck_mask.txt")
 TEMPLATE_NAMES = ("template.obj", "template/template.obj")
 MIN_SHARED_CAMERAS = 3
@@ -180,9 +182,9 @@ def read_vhap_subject(folder: Path) -> VhapSubject:
     import json
 
     folder = Path(folder)
-    path = folder / "transforms.json"
+    path = folder / TRANSFORMS_NAME
     if not path.is_file():
-        raise FileNotFoundError(f"{path} is missing: expected a VHAP export (transforms.json + meshes/)")
+        raise FileNotFoundError(f"{path} is missing: expected a VHAP export ({TRANSFORMS_NAME} + meshes/)")
     document = json.loads(path.read_text())
     rig = from_transforms_json(document if "frames" in document else path, per="camera")
     cameras = {}

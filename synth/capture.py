@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from relightanyone.synth.raytrace import PointLights
+
 # Zip members carry this date so that archives do not depend on when they were written.
 FIXED_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
@@ -89,6 +91,26 @@ def random_colour_response(rng: np.random.Generator, gain_spread: float, crossta
     if np.linalg.cond(response) > 10:  # keep the cast correctable by a well-conditioned 3x3
         raise ValueError("colour response is ill-conditioned; lower the crosstalk")
     return response
+
+
+def random_colour_responses(
+    rng: np.random.Generator, cameras: list, gain_spread: float, crosstalk: float
+) -> dict[str, np.ndarray]:
+    """Camera name -> its own :func:`random_colour_response`, drawn in camera order."""
+    return {cam.name: random_colour_response(rng, gain_spread, crosstalk) for cam in cameras}
+
+
+def frontal_flashes(
+    count: int, half_span_deg: float, upper_deg: float, lower_deg: float, radius: float, mean_cosine: float
+) -> PointLights:
+    """``count`` flashes on an arc of ``radius`` metres around the head, azimuths evenly over
+    ±``half_span_deg``, alternating between elevations ``upper_deg`` and ``lower_deg``. Together they give
+    an irradiance of ~pi at the face, which sees them at a mean cosine of ``mean_cosine``."""
+    azimuths = np.deg2rad(np.linspace(-half_span_deg, half_span_deg, count))
+    elevations = np.deg2rad(np.where(np.arange(count) % 2 == 0, upper_deg, lower_deg))
+    positions = HEAD_AIM_POINT + radius * spherical_direction(azimuths, elevations)
+    per_light = np.pi * radius**2 / (mean_cosine * count)
+    return PointLights(positions=positions, intensities=np.full((count, 3), per_light))
 
 
 def similarity_matrix(rotation: np.ndarray, translation: np.ndarray, scale: float) -> np.ndarray:

@@ -39,7 +39,7 @@ from relightanyone.synth.d1_metashape import metashape_document
 from relightanyone.synth.envmap import write_exr
 from relightanyone.synth.presets import DatasetSize, Preset
 from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render
-from relightanyone.synth.truth import CameraTruth, DatasetTruth
+from relightanyone.synth.truth import DatasetTruth, RenderedRig
 
 NATIVE_DIR = "faceolat"
 D1_RIG_SEED = 331  # the rig is the same in every world: lights come from this seed
@@ -323,30 +323,20 @@ def generate(
         },
         2,
     )
-    return DatasetTruth(
-        dataset="d1",
-        layout="faceolat",
-        native_dir=NATIVE_DIR,
-        world_from_canonical=world_from_canonical,
-        cameras={c.name: CameraTruth(c.name, c.K, c.w2c, c.dist, c.width, c.height) for c in cameras},
-        head_poses=head_poses,
-        colour_response={c.name: response for c in cameras},
-        light_positions=lights.positions,
-        light_intensities=lights.intensities,
-        splits=dict(splits),
-        extra={
-            "full_on_frames": full_on_frames,
-            "capture_ids": {s.name: capture_id(s.name) for s in subjects},
-            "full_on_scale": full_scale,
-            "olat_duration": n_lights,
-            # A light's intensity for a pattern is this * duration / DURATION_UNIT (canonical units).
-            "intensity_at_full_duration": (lights.intensities * DURATION_UNIT / n_lights).tolist(),
-            "full_duration_per_light": round(n_lights / FULL_ON_PERIOD, 4),
-            "light_file_units_per_world_unit": 1000.0,
-            "chunk_transforms": chunk_transforms,
-            "colour_matrix_file": colour_matrix.tolist(),
-            "rig_seed": D1_RIG_SEED,
-            "light_scan_order": order.tolist(),
-            "frames": "EXR HALF, recorded = colour_response @ radiance; head still during a take",
-        },
-    )
+    extra = {
+        "full_on_frames": full_on_frames,
+        "capture_ids": {s.name: capture_id(s.name) for s in subjects},
+        "full_on_scale": full_scale,
+        "olat_duration": n_lights,
+        # A light's intensity for a pattern is this * duration / DURATION_UNIT (canonical units).
+        "intensity_at_full_duration": (lights.intensities * DURATION_UNIT / n_lights).tolist(),
+        "full_duration_per_light": round(n_lights / FULL_ON_PERIOD, 4),
+        "light_file_units_per_world_unit": 1000.0,
+        "chunk_transforms": chunk_transforms,
+        "colour_matrix_file": colour_matrix.tolist(),
+        "rig_seed": D1_RIG_SEED,
+        "light_scan_order": order.tolist(),
+        "frames": "EXR HALF, recorded = colour_response @ radiance; head still during a take",
+    }
+    rig = RenderedRig(world_from_canonical, cameras, lights, {c.name: response for c in cameras})
+    return DatasetTruth.of_rig("d1", "faceolat", NATIVE_DIR, rig, head_poses, splits, extra)

@@ -41,6 +41,14 @@ def _sub(parent: ET.Element, tag: str, text: str | None = None, **attrs) -> ET.E
     return element
 
 
+def _sub_properties(parent: ET.Element, tag: str, *properties: tuple[str, str]) -> ET.Element:
+    """A ``tag`` child of ``parent`` holding one ``<property name= value=/>`` per (name, value)."""
+    element = _sub(parent, tag)
+    for name, value in properties:
+        _sub(element, "property", name=name, value=value)
+    return element
+
+
 def opencv_to_metashape(camera: SynthCamera) -> dict[str, float]:
     """Metashape calibration values (f, cx, cy, b1, k1, k2, k3, p1, p2) of an OpenCV camera without skew."""
     K = np.asarray(camera.K, dtype=np.float64)
@@ -155,25 +163,25 @@ def metashape_document(
     _sub(region, "center", _nums(region_centre))
     _sub(region, "size", _nums(region_size))
     _sub(region, "R", chunk_rotation_text)
-    settings = _sub(chunk, "settings")
-    for name, value in (
+    _sub_properties(
+        chunk,
+        "settings",
         ("accuracy_tiepoints", "1"),
         ("accuracy_cameras", "10"),
         ("accuracy_cameras_ypr", "10"),
         ("accuracy_markers", "0.0050000000000000001"),
         ("accuracy_scalebars", "0.001"),
         ("accuracy_projections", "0.5"),
-    ):
-        _sub(settings, "property", name=name, value=value)
-    meta = _sub(chunk, "meta")
-    for name, value in (
+    )
+    _sub_properties(
+        chunk,
+        "meta",
         ("AlignCameras/adaptive_fitting", "false"),
         ("AlignCameras/min_image", "2"),
         ("AlignCameras/reset_alignment", "false"),
         ("OptimizeCameras/adaptive_fitting", "false"),
         ("OptimizeCameras/fit_flags", "f cx cy b1 k1 k2 k3 p1 p2"),
-    ):
-        _sub(meta, "property", name=name, value=value)
+    )
 
     ET.indent(root, space="  ")
     body = ET.tostring(root, encoding="unicode").replace(" />", "/>")

@@ -35,7 +35,7 @@ from relightanyone.synth.capture import (
     look_at_w2c,
     native_head_pose,
     native_w2c,
-    random_colour_response,
+    random_colour_responses,
     random_head_pose,
     random_world_from_canonical,
     report_progress,
@@ -47,7 +47,7 @@ from relightanyone.synth.capture import (
 from relightanyone.synth.presets import Preset
 from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render
 from relightanyone.synth.template import HeadTemplate
-from relightanyone.synth.truth import CameraTruth, DatasetTruth
+from relightanyone.synth.truth import DatasetTruth, RenderedRig
 
 NATIVE_DIR = "ava256"
 SENSOR_SCALE = 4  # the calibration describes a sensor this many times larger than the written images
@@ -175,7 +175,7 @@ def generate(
     world_from_canonical = random_world_from_canonical(rng, scale=1000.0, offset_range=800.0)
     cameras = make_cameras(preset, rng)
     lights = even_lights(size.lights)
-    responses = {cam.name: random_colour_response(rng, gain_spread=0.25, crosstalk=0.06) for cam in cameras}
+    responses = random_colour_responses(rng, cameras, gain_spread=0.25, crosstalk=0.06)
     dropped = {
         "subject": subjects[0].name,
         "camera": cameras[int(rng.integers(0, len(cameras)))].name,
@@ -225,34 +225,17 @@ def generate(
         if subject.name == dropped["subject"]:
             dropped["frame_id"] = frame_ids[dropped["frame_index"]]
 
-    return DatasetTruth(
-        dataset="d2",
-        layout="ava256",
-        native_dir=NATIVE_DIR,
-        world_from_canonical=world_from_canonical,
-        cameras={
-            cam.name: CameraTruth(cam.name, cam.K, cam.w2c, cam.dist, cam.width, cam.height)
-            for cam in cameras
-        },
-        head_poses=head_poses,
-        colour_response={name: response * EXPOSURE for name, response in responses.items()},
-        light_positions=lights.positions,
-        light_intensities=lights.intensities,
-        splits=dict(splits),
-        extra={
-            "captures": captures,
-            "dropped_images": [dropped],
-            "sensor_scale": SENSOR_SCALE,
-            "image_encoding": "8-bit linear recorded RGB in AVIF (no transfer curve)",
-            "head_pose_convention": "native head space = canonical space in mm; file = head(mm) -> world(mm)",
-            "frame_key": "native frame id",
-        },
-    )
-
-
-def expected_renders(preset: Preset) -> int:
-    size = preset.d2
-    return (size.train_subjects + size.test_subjects) * size.frames * size.cameras
+    extra = {
+        "captures": captures,
+        "dropped_images": [dropped],
+        "sensor_scale": SENSOR_SCALE,
+        "image_encoding": "8-bit linear recorded RGB in AVIF (no transfer curve)",
+        "head_pose_convention": "native head space = canonical space in mm; file = head(mm) -> world(mm)",
+        "frame_key": "native frame id",
+    }
+    colour_response = {name: response * EXPOSURE for name, response in responses.items()}
+    rig = RenderedRig(world_from_canonical, cameras, lights, colour_response)
+    return DatasetTruth.of_rig("d2", "ava256", NATIVE_DIR, rig, head_poses, splits, extra)
 
 
 def preview_images(native_root: Path, count: int) -> list[tuple[str, np.ndarray]]:

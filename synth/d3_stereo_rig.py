@@ -34,10 +34,11 @@ from relightanyone.synth.capture import (
     HEAD_AIM_POINT,
     apply_colour_response,
     focal_for_field,
+    frontal_flashes,
     intrinsics,
     look_at_w2c,
     native_w2c,
-    random_colour_response,
+    random_colour_responses,
     random_world_from_canonical,
     report_progress,
     spherical_direction,
@@ -47,7 +48,7 @@ from relightanyone.synth.capture import (
 from relightanyone.synth.presets import Preset
 from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render, textured_quad
 from relightanyone.synth.template import HeadTemplate
-from relightanyone.synth.truth import CameraTruth, DatasetTruth
+from relightanyone.synth.truth import DatasetTruth, RenderedRig
 
 NATIVE_DIR = "stereo_rig"
 RAW_BITS = 12
@@ -150,12 +151,7 @@ def make_cameras(preset: Preset, rng: np.random.Generator) -> list[SynthCamera]:
 
 def flash_lights(count: int) -> PointLights:
     """``count`` frontal flashes on a 1 m arc around the cameras (alternating above and below)."""
-    azimuths = np.deg2rad(np.linspace(-40.0, 40.0, count))
-    elevations = np.deg2rad(np.where(np.arange(count) % 2 == 0, 22.0, -8.0))
-    positions = HEAD_AIM_POINT + 1.0 * spherical_direction(azimuths, elevations)
-    # Irradiance of ~pi at the head from the sum of the flashes (cosine ~0.8 on average for the face).
-    per_light = np.pi * 1.0**2 / (0.8 * count)
-    return PointLights(positions=positions, intensities=np.full((count, 3), per_light))
+    return frontal_flashes(count, 40.0, 22.0, -8.0, radius=1.0, mean_cosine=0.8)
 
 
 def mosaic_rggb(recorded: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -235,7 +231,7 @@ def generate(
     world_from_canonical = random_world_from_canonical(rng, scale=1.0, offset_range=0.5)
     cameras = make_cameras(preset, rng)
     lights = flash_lights(size.lights)
-    responses = {cam.name: random_colour_response(rng, gain_spread=0.3, crosstalk=0.08) for cam in cameras}
+    responses = random_colour_responses(rng, cameras, gain_spread=0.3, crosstalk=0.08)
     root.mkdir(parents=True, exist_ok=True)
     rig = {
         "cameras": [cam.name for cam in cameras],
@@ -266,27 +262,15 @@ def generate(
             write_raw(root / "captures" / subject.name / f"{cam.name}.dng", result.image, cam)
             report_progress(progress)
 
-    return DatasetTruth(
-        dataset="d3",
-        layout="stereo-rig",
-        native_dir=NATIVE_DIR,
-        world_from_canonical=world_from_canonical,
-        cameras={
-            cam.name: CameraTruth(cam.name, cam.K, cam.w2c, cam.dist, cam.width, cam.height)
-            for cam in cameras
-        },
-        head_poses=head_poses,
-        colour_response={name: response * EXPOSURE for name, response in responses.items()},
-        light_positions=lights.positions,
-        light_intensities=lights.intensities,
-        splits=dict(splits),
-        extra={
-            "chart_reference_linear_srgb": chart_reference_linear_srgb().tolist(),
-            "raw_normalisation": "recorded_linear = (dng - black) / (white - black)",
-            "colmap_principal_point": "OpenCV cx, cy + 0.5",
-            "frame_key": "0 (one frame per subject)",
-        },
-    )
+    extra = {
+        "chart_reference_linear_srgb": chart_reference_linear_srgb().tolist(),
+        "raw_normalisation": "recorded_linear = (dng - black) / (white - black)",
+        "colmap_principal_point": "OpenCV cx, cy + 0.5",
+        "frame_key": "0 (one frame per subject)",
+    }
+    colour_response = {name: response * EXPOSURE for name, response in responses.items()}
+    rig = RenderedRig(world_from_canonical, cameras, lights, colour_response)
+    return DatasetTruth.of_rig("d3", "stereo-rig", NATIVE_DIR, rig, head_poses, splits, extra)
 
 
 def expected_renders(preset: Preset) -> int:

@@ -31,10 +31,11 @@ from relightanyone.synth.capture import (
     HEAD_AIM_POINT,
     apply_colour_response,
     focal_for_field,
+    frontal_flashes,
     intrinsics,
     look_at_w2c,
     native_w2c,
-    random_colour_response,
+    random_colour_responses,
     random_head_pose,
     random_world_from_canonical,
     report_progress,
@@ -45,7 +46,7 @@ from relightanyone.synth.capture import (
 from relightanyone.synth.presets import Preset
 from relightanyone.synth.raytrace import PointLights, Scene, SynthCamera, render, textured_quad
 from relightanyone.synth.template import HeadTemplate
-from relightanyone.synth.truth import CameraTruth, DatasetTruth
+from relightanyone.synth.truth import DatasetTruth, RenderedRig
 
 NATIVE_DIR = "nersemble"
 SERIALS = (
@@ -135,11 +136,7 @@ def make_cameras(preset: Preset, rng: np.random.Generator) -> list[SynthCamera]:
 
 def flash_lights(count: int) -> PointLights:
     """``count`` frontal flashes on two rows of a 1.2 m arc, together giving an irradiance of ~pi at the face."""
-    azimuths = np.deg2rad(np.linspace(-70.0, 70.0, count))
-    elevations = np.deg2rad(np.where(np.arange(count) % 2 == 0, 30.0, -5.0))
-    positions = HEAD_AIM_POINT + 1.2 * spherical_direction(azimuths, elevations)
-    per_light = np.pi * 1.2**2 / (0.6 * count)
-    return PointLights(positions=positions, intensities=np.full((count, 3), per_light))
+    return frontal_flashes(count, 70.0, 30.0, -5.0, radius=1.2, mean_cosine=0.6)
 
 
 def background_plate(rng: np.random.Generator) -> Scene:
@@ -206,7 +203,7 @@ def generate(
     world_from_canonical = random_world_from_canonical(rng, scale=1.0, offset_range=0.3)
     cameras = make_cameras(preset, rng)
     lights = flash_lights(size.lights)
-    responses = {cam.name: random_colour_response(rng, gain_spread=0.2, crosstalk=0.05) for cam in cameras}
+    responses = random_colour_responses(rng, cameras, gain_spread=0.2, crosstalk=0.05)
     plate = background_plate(rng)
     ids = [subject.name for subject in subjects]
     root.mkdir(parents=True, exist_ok=True)
@@ -249,33 +246,16 @@ def generate(
         for cam in cameras:
             encode_video(folder / "sequences" / SEQUENCE / "images" / f"cam_{cam.name}.mp4", frames[cam.name])
 
-    return DatasetTruth(
-        dataset="d4",
-        layout="nersemble",
-        native_dir=NATIVE_DIR,
-        world_from_canonical=world_from_canonical,
-        cameras={
-            cam.name: CameraTruth(cam.name, cam.K, cam.w2c, cam.dist, cam.width, cam.height)
-            for cam in cameras
-        },
-        head_poses=head_poses,
-        colour_response={name: response * EXPOSURE for name, response in responses.items()},
-        light_positions=lights.positions,
-        light_intensities=lights.intensities,
-        splits=dict(splits),
-        extra={
-            "sequence": SEQUENCE,
-            "fps": FPS,
-            "video": "libx264 yuv444p crf 0, sRGB-encoded recorded colour",
-            "background_plate": {"z_m": -PLATE_DISTANCE_M, "albedo": PLATE_ALBEDO},
-            "frame_key": "video frame index",
-        },
-    )
-
-
-def expected_renders(preset: Preset) -> int:
-    size = preset.d4
-    return (size.train_subjects + size.test_subjects) * size.frames * size.cameras
+    extra = {
+        "sequence": SEQUENCE,
+        "fps": FPS,
+        "video": "libx264 yuv444p crf 0, sRGB-encoded recorded colour",
+        "background_plate": {"z_m": -PLATE_DISTANCE_M, "albedo": PLATE_ALBEDO},
+        "frame_key": "video frame index",
+    }
+    colour_response = {name: response * EXPOSURE for name, response in responses.items()}
+    rig = RenderedRig(world_from_canonical, cameras, lights, colour_response)
+    return DatasetTruth.of_rig("d4", "nersemble", NATIVE_DIR, rig, head_poses, splits, extra)
 
 
 def preview_images(native_root: Path, count: int) -> list[tuple[str, np.ndarray]]:

@@ -43,54 +43,59 @@ class Preset:
 
 
 PRESETS: dict[str, Preset] = {
-    "tiny": Preset(
-        name="tiny",
-        template_segments=48,
-        texture_size=128,
-        supersampling=1,
-        answer_lights=16,
-        envmap_count=2,
-        d1=DatasetSize(train_subjects=3, test_subjects=1, cameras=8, image_size=(128, 192), lights=16),
-        d2=DatasetSize(
-            train_subjects=3, test_subjects=1, cameras=12, image_size=(104, 160), frames=2, lights=24
+    preset.name: preset
+    for preset in (
+        Preset(
+            name="tiny",
+            template_segments=48,
+            texture_size=128,
+            supersampling=1,
+            answer_lights=16,
+            envmap_count=2,
+            d1=DatasetSize(train_subjects=3, test_subjects=1, cameras=8, image_size=(128, 192), lights=16),
+            d2=DatasetSize(
+                train_subjects=3, test_subjects=1, cameras=12, image_size=(104, 160), frames=2, lights=24
+            ),
+            d3=DatasetSize(train_subjects=2, test_subjects=1, cameras=8, image_size=(160, 120), lights=4),
+            d4=DatasetSize(
+                train_subjects=2, test_subjects=1, cameras=16, image_size=(110, 160), frames=2, lights=8
+            ),
         ),
-        d3=DatasetSize(train_subjects=2, test_subjects=1, cameras=8, image_size=(160, 120), lights=4),
-        d4=DatasetSize(
-            train_subjects=2, test_subjects=1, cameras=16, image_size=(110, 160), frames=2, lights=8
+        Preset(
+            name="demo",
+            template_segments=72,
+            texture_size=256,
+            supersampling=1,
+            answer_lights=32,
+            envmap_count=4,
+            d1=DatasetSize(train_subjects=12, test_subjects=3, cameras=12, image_size=(192, 288), lights=32),
+            d2=DatasetSize(
+                train_subjects=14, test_subjects=2, cameras=24, image_size=(167, 256), frames=2, lights=32
+            ),
+            d3=DatasetSize(train_subjects=8, test_subjects=2, cameras=8, image_size=(256, 192), lights=4),
+            d4=DatasetSize(
+                train_subjects=8, test_subjects=2, cameras=16, image_size=(176, 256), frames=2, lights=8
+            ),
         ),
-    ),
-    "demo": Preset(
-        name="demo",
-        template_segments=72,
-        texture_size=256,
-        supersampling=1,
-        answer_lights=32,
-        envmap_count=4,
-        d1=DatasetSize(train_subjects=12, test_subjects=3, cameras=12, image_size=(192, 288), lights=32),
-        d2=DatasetSize(
-            train_subjects=14, test_subjects=2, cameras=24, image_size=(167, 256), frames=2, lights=32
+        Preset(
+            name="paper",
+            template_segments=160,
+            texture_size=1024,
+            supersampling=2,
+            answer_lights=331,
+            envmap_count=10,
+            d1=DatasetSize(
+                train_subjects=120, test_subjects=19, cameras=40, image_size=(2160, 4096), lights=331
+            ),
+            d2=DatasetSize(
+                train_subjects=236, test_subjects=20, cameras=80, image_size=(667, 1024), frames=4, lights=64
+            ),
+            d3=DatasetSize(train_subjects=60, test_subjects=6, cameras=8, image_size=(2048, 1536), lights=4),
+            d4=DatasetSize(
+                train_subjects=200, test_subjects=20, cameras=16, image_size=(2200, 3208), frames=4, lights=8
+            ),
         ),
-        d3=DatasetSize(train_subjects=8, test_subjects=2, cameras=8, image_size=(256, 192), lights=4),
-        d4=DatasetSize(
-            train_subjects=8, test_subjects=2, cameras=16, image_size=(176, 256), frames=2, lights=8
-        ),
-    ),
-    "paper": Preset(
-        name="paper",
-        template_segments=160,
-        texture_size=1024,
-        supersampling=2,
-        answer_lights=331,
-        envmap_count=10,
-        d1=DatasetSize(train_subjects=120, test_subjects=19, cameras=40, image_size=(2160, 4096), lights=331),
-        d2=DatasetSize(
-            train_subjects=236, test_subjects=20, cameras=80, image_size=(667, 1024), frames=4, lights=64
-        ),
-        d3=DatasetSize(train_subjects=60, test_subjects=6, cameras=8, image_size=(2048, 1536), lights=4),
-        d4=DatasetSize(
-            train_subjects=200, test_subjects=20, cameras=16, image_size=(2200, 3208), frames=4, lights=8
-        ),
-    ),
+    )
 }
 
 

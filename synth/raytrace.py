@@ -20,7 +20,7 @@ Conventions:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -197,16 +197,7 @@ class Scene:
 
     def merge(self, other: Scene) -> Scene:
         """A new scene with ``other`` (and its own extras) added after this scene's meshes."""
-        return Scene(
-            self.vertices,
-            self.faces,
-            self.uvs,
-            self.face_uvs,
-            self.albedo,
-            self.specular_intensity,
-            self.roughness,
-            [*self.extras, *other.meshes()],
-        )
+        return replace(self, extras=[*self.extras, *other.meshes()])
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -215,16 +206,7 @@ class Scene:
 
     def meshes(self) -> list[Scene]:
         """This scene's meshes in render order, each without extras."""
-        head = Scene(
-            self.vertices,
-            self.faces,
-            self.uvs,
-            self.face_uvs,
-            self.albedo,
-            self.specular_intensity,
-            self.roughness,
-        )
-        return [head, *(m for extra in self.extras for m in extra.meshes())]
+        return [replace(self, extras=[]), *(m for extra in self.extras for m in extra.meshes())]
 
 
 def textured_quad(

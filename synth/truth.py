@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -25,6 +26,15 @@ class CameraTruth:
     dist: np.ndarray  # (5,) OpenCV k1, k2, p1, p2, k3 applied by the renderer
     width: int
     height: int
+
+
+class RenderedRig(NamedTuple):
+    """What a generator rendered a dataset with."""
+
+    world_from_canonical: np.ndarray  # (4, 4) similarity: native world (native units) <- canonical metres
+    cameras: list  # as the renderer used them: each with name, K, w2c, dist, width, height
+    lights: Any  # point lights: positions (L, 3) canonical metres, intensities (L, 3) linear RGB
+    colour_response: dict[str, np.ndarray]  # camera -> (3, 3) M with recorded_linear = M @ true_linear
 
 
 @dataclass
@@ -43,6 +53,32 @@ class DatasetTruth:
     light_intensities: np.ndarray  # (L, 3) linear RGB
     splits: dict[str, str]  # subject -> "train" | "test"
     extra: dict = field(default_factory=dict)  # dataset-specific facts (e.g. full-on frame indices)
+
+    @classmethod
+    def of_rig(
+        cls,
+        dataset: str,
+        layout: str,
+        native_dir: str,
+        rig: RenderedRig,
+        head_poses: dict,
+        splits: dict,
+        extra: dict,
+    ) -> DatasetTruth:
+        """The truth of a dataset rendered with ``rig``; ``head_poses`` as in the field of that name."""
+        return cls(
+            dataset=dataset,
+            layout=layout,
+            native_dir=native_dir,
+            world_from_canonical=rig.world_from_canonical,
+            cameras={c.name: CameraTruth(c.name, c.K, c.w2c, c.dist, c.width, c.height) for c in rig.cameras},
+            head_poses=head_poses,
+            colour_response=rig.colour_response,
+            light_positions=rig.lights.positions,
+            light_intensities=rig.lights.intensities,
+            splits=dict(splits),
+            extra=extra,
+        )
 
     def to_json(self) -> dict:
         return {

@@ -55,6 +55,11 @@ def resolve_preset(preset: str | Preset) -> Preset:
     return preset if isinstance(preset, Preset) else get_preset(preset)
 
 
+def _require_at_least(where: str, name: str, value: int, minimum: int) -> None:
+    if value < minimum:
+        raise ValueError(f"{where}: {name} must be >= {minimum}, got {value}")
+
+
 def check_parameters(preset: Preset, datasets: tuple[str, ...]) -> None:
     """Raise ValueError naming the first impossible setting for the requested datasets."""
     if not datasets:
@@ -64,20 +69,13 @@ def check_parameters(preset: Preset, datasets: tuple[str, ...]) -> None:
             raise ValueError(f"unknown dataset {dataset!r}; expected some of {', '.join(DATASET_MODULES)}")
     if len(set(datasets)) != len(datasets):
         raise ValueError(f"dataset listed twice in {', '.join(datasets)}")
-    if preset.template_segments < 8:
-        raise ValueError(
-            f"preset {preset.name}: template_segments must be >= 8, got {preset.template_segments}"
-        )
-    if preset.texture_size < 4:
-        raise ValueError(f"preset {preset.name}: texture_size must be >= 4, got {preset.texture_size}")
-    if preset.supersampling < 1:
-        raise ValueError(f"preset {preset.name}: supersampling must be >= 1, got {preset.supersampling}")
+    for name, minimum in (("template_segments", 8), ("texture_size", 4), ("supersampling", 1)):
+        _require_at_least(f"preset {preset.name}", name, getattr(preset, name), minimum)
     if not 1 <= preset.answer_lights <= preset.d1.lights:
         raise ValueError(
             f"preset {preset.name}: answer_lights must be in 1..d1.lights ({preset.d1.lights}), got {preset.answer_lights}"
         )
-    if preset.envmap_count < 0:
-        raise ValueError(f"preset {preset.name}: envmap_count must be >= 0, got {preset.envmap_count}")
+    _require_at_least(f"preset {preset.name}", "envmap_count", preset.envmap_count, 0)
     for dataset in datasets:
         size = preset.size_of(dataset)
         width, height = size.image_size
@@ -90,8 +88,7 @@ def check_parameters(preset: Preset, datasets: tuple[str, ...]) -> None:
             raise ValueError(
                 f"{where}: needs at least one subject, got {size.train_subjects}+{size.test_subjects}"
             )
-        if size.frames < 1:
-            raise ValueError(f"{where}: frames must be >= 1, got {size.frames}")
+        _require_at_least(where, "frames", size.frames, 1)
         if size.lights < 1:
             raise ValueError(f"{where}: needs at least one light, got {size.lights}")
     if "d3" in datasets and (preset.d3.image_size[0] % 2 or preset.d3.image_size[1] % 2):
@@ -248,6 +245,7 @@ def expected_work(preset: Preset, datasets: tuple[str, ...]) -> int:
     for dataset in datasets:
         module = dataset_module(dataset)
         size = preset.size_of(dataset)
+        # One render per subject, frame and camera, unless the module counts its own (D3's chart frames).
         if hasattr(module, "expected_renders"):
             total += module.expected_renders(preset)
         else:

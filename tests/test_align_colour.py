@@ -9,7 +9,6 @@ import pytest
 import torch
 
 from relightanyone.align.colour import (
-    COLOUR_ALIGNMENT_FILENAME,
     apply_ccm,
     apply_display_affine,
     apply_faceolat_colour_matrix,
@@ -21,12 +20,12 @@ from relightanyone.align.colour import (
     linear_to_gamma,
     linear_to_srgb,
     read_faceolat_colour_matrix,
-    read_learned_colour_matrix,
     read_nersemble_colour_calibration,
     read_nersemble_v1_affine,
     srgb_to_linear,
-    write_learned_colour_matrix,
 )
+from relightanyone.format.colour_alignment import read_learned_colour_matrix, write_learned_colour_matrix
+from relightanyone.format.schema import COLOUR_ALIGNMENT_NAME
 
 CAST = np.array([[0.92, 0.11, 0.02], [0.04, 0.81, 0.09], [0.01, 0.14, 1.12]])
 
@@ -225,7 +224,7 @@ def test_ccm_error_reports_a_known_delta_e():
 def test_learned_matrix_roundtrip_and_absence(tmp_path):
     assert read_learned_colour_matrix(tmp_path) is None
     path = write_learned_colour_matrix(tmp_path, CAST, {"reference_dataset": "faceolat", "step": 1200})
-    assert path.name == COLOUR_ALIGNMENT_FILENAME
+    assert path.name == COLOUR_ALIGNMENT_NAME
     assert read_learned_colour_matrix(tmp_path) == pytest.approx(CAST, abs=0)
     first = path.read_bytes()
     write_learned_colour_matrix(tmp_path, CAST, {"step": 1200, "reference_dataset": "faceolat"})
@@ -235,7 +234,7 @@ def test_learned_matrix_roundtrip_and_absence(tmp_path):
 
 
 def test_learned_matrix_malformed_file_names_the_file(tmp_path):
-    path = tmp_path / COLOUR_ALIGNMENT_FILENAME
+    path = tmp_path / COLOUR_ALIGNMENT_NAME
     path.write_text(
         json.dumps({"format": "relightanyone.colour_alignment", "version": 1, "matrix": [[1, 0]]})
     )

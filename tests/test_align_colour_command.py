@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from helpers.stage1_world import write_dataset
 
 from relightanyone.cli import cli
-from relightanyone.format.dataset_view import link_dataset_view
+from relightanyone.format.dataset_view import dataset_file_names, link_dataset_view
 from relightanyone.format.reader import NormalizedDataset
 
 
@@ -33,6 +33,24 @@ def test_a_view_reads_the_same_rows_through_relative_links(tmp_path):
     np.testing.assert_array_equal(
         NormalizedDataset(tmp_path / "b" / "views" / "flat").decoded(key)[1], seen.decoded(key)[1]
     )
+
+
+def test_a_view_links_the_files_of_the_format_and_nothing_else(tmp_path):
+    source = write_dataset(tmp_path / "data", "flat", subjects=1, cameras=2, size=16)
+    dataset_files = sorted(p.name for p in source.iterdir())
+    # What a pipeline runner or a user leaves in the folder is not part of the dataset.
+    for stranger in ("_stage.json", "_stage.log", "_stage.json.x1y2.tmp", "notes.txt"):
+        (source / stranger).write_text("{}")
+    (source / "colour_alignment.json").write_text("{}")
+    assert dataset_file_names(source) == sorted([*dataset_files, "colour_alignment.json"])
+    assert {"manifest.json", "index.arrow", "images-00000.arrow", "template.obj"} <= set(dataset_files)
+    view = link_dataset_view(
+        source, tmp_path / "views" / "flat", exclude=frozenset({"colour_alignment.json"})
+    )
+    assert sorted(p.name for p in view.iterdir()) == dataset_files
+    (source / "index.arrow").unlink()
+    with pytest.raises(FileNotFoundError, match="index.arrow"):
+        link_dataset_view(source, tmp_path / "views" / "broken")
 
 
 def test_a_view_refuses_to_replace_its_source(tmp_path):

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pytest
 
 from relightanyone.format.codecs import (
@@ -18,6 +20,10 @@ from relightanyone.format.codecs import (
 from relightanyone.format.examples import example_rows, face_like_image
 from relightanyone.format.schema import (
     IMAGE_SCHEMA,
+    INDEX_SCHEMA,
+    LIGHT_SCHEMA,
+    MESH_SCHEMA,
+    TABLES,
     DatasetInfo,
     FileEntry,
     ImageRow,
@@ -27,6 +33,99 @@ from relightanyone.format.schema import (
     camera_problems,
     make_image_key,
 )
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "format.md"
+
+
+def _v1(table: str, fields: list[pa.Field]) -> pa.Schema:
+    return pa.schema(fields).with_metadata(
+        {
+            b"schema_version": b"1",
+            b"colour_space": b"scene-linear rgb",
+            b"camera_convention": b"opencv, w2c row-major, metres",
+            b"table": table.encode(),
+        }
+    )
+
+
+# Format version 1 as written on disk, spelled out field by field: the schemas derived from the column
+# declarations must stay identical to it, so existing datasets read and shards stay byte-identical.
+FORMAT_V1 = {
+    "images": _v1(
+        "images",
+        [
+            pa.field("key", pa.string(), nullable=False),
+            pa.field("dataset", pa.string(), nullable=False),
+            pa.field("subject", pa.string(), nullable=False),
+            pa.field("frame", pa.int32(), nullable=False),
+            pa.field("camera", pa.string(), nullable=False),
+            pa.field("pattern", pa.string(), nullable=False),
+            pa.field("split", pa.string(), nullable=False),
+            pa.field("width", pa.int32(), nullable=False),
+            pa.field("height", pa.int32(), nullable=False),
+            pa.field("K", pa.list_(pa.float64(), 9), nullable=False),
+            pa.field("w2c", pa.list_(pa.float64(), 16), nullable=False),
+            pa.field("image", pa.binary(), nullable=False),
+            pa.field("image_encoding", pa.string(), nullable=False),
+            pa.field("mask", pa.binary(), nullable=False),
+            pa.field("crop", pa.list_(pa.int32(), 4), nullable=False),
+            pa.field("colour_matrix", pa.list_(pa.float64(), 9), nullable=False),
+            pa.field("source", pa.string(), nullable=False),
+            pa.field("source_sha256", pa.string(), nullable=False),
+        ],
+    ),
+    "meshes": _v1(
+        "meshes",
+        [
+            pa.field("key", pa.string(), nullable=False),
+            pa.field("subject", pa.string(), nullable=False),
+            pa.field("frame", pa.int32(), nullable=False),
+            pa.field("vertex_count", pa.int32(), nullable=False),
+            pa.field("vertices", pa.list_(pa.float32()), nullable=False),
+        ],
+    ),
+    "lights": _v1(
+        "lights",
+        [
+            pa.field("index", pa.int32(), nullable=False),
+            pa.field("name", pa.string(), nullable=False),
+            pa.field("position_m", pa.list_(pa.float64(), 3), nullable=False),
+            pa.field("intensity_rgb", pa.list_(pa.float64(), 3), nullable=False),
+            pa.field("pattern", pa.string(), nullable=False),
+            pa.field("full_on_intensity_rgb", pa.list_(pa.float64(), 3), nullable=True),
+        ],
+    ),
+    "index": _v1(
+        "index",
+        [
+            pa.field("key", pa.string(), nullable=False),
+            pa.field("subject", pa.string(), nullable=False),
+            pa.field("frame", pa.int32(), nullable=False),
+            pa.field("camera", pa.string(), nullable=False),
+            pa.field("pattern", pa.string(), nullable=False),
+            pa.field("split", pa.string(), nullable=False),
+            pa.field("shard", pa.int32(), nullable=False),
+            pa.field("batch_offset", pa.int64(), nullable=False),
+        ],
+    ),
+}
+
+
+@pytest.mark.parametrize(
+    "table, schema",
+    [("images", IMAGE_SCHEMA), ("meshes", MESH_SCHEMA), ("lights", LIGHT_SCHEMA), ("index", INDEX_SCHEMA)],
+)
+def test_derived_schemas_are_format_version_1_to_the_byte(table, schema):
+    assert schema.equals(FORMAT_V1[table], check_metadata=True)
+    assert schema.serialize().to_pybytes() == FORMAT_V1[table].serialize().to_pybytes()
+
+
+@pytest.mark.parametrize("table", TABLES, ids=lambda t: t.name)
+def test_docs_tables_are_generated_from_the_schema(table):
+    # Regenerate with: python -c "from relightanyone.format.schema import TABLES; print(TABLES[i].markdown())"
+    assert table.markdown() in DOCS.read_text(encoding="utf-8"), (
+        f"docs/format.md: the {table.name} table is out of date; replace it with:\n{table.markdown()}"
+    )
 
 
 @pytest.mark.parametrize("encoding", ["png16", "exr-half", "raw-f16"])
@@ -79,11 +178,13 @@ def test_image_row_arrow_round_trip_and_key():
     row = example_rows(cameras=1)[0]
     values = row.to_arrow_dict()
     assert list(values) == IMAGE_SCHEMA.names
+    assert values["K"] == row.K.reshape(9).tolist() and values["crop"] == [0, 0, 24, 32]
     back = ImageRow.from_arrow_dict(values)
     assert (
         back.key == make_image_key("example", "s000", 0, "cam00", "full") == "example/s000/000000/cam00/full"
     )
     assert np.array_equal(back.w2c, row.w2c) and back.crop == (0, 0, 24, 32)
+    assert back.K.shape == (3, 3) and back.colour_matrix.dtype == np.float64
 
 
 def test_bad_rows_name_the_key_and_the_field():

@@ -151,7 +151,7 @@ def test_torchrun_two_gloo_processes_average_gradients(world, tmp_path):
 
 
 def test_colour_warmup_stores_the_inverse_matrix_and_the_loader_applies_it(world, tmp_path):
-    from relightanyone.align.colour import read_learned_colour_matrix
+    from relightanyone.format.colour_alignment import read_learned_colour_matrix
     from relightanyone.model.train.colour_warmup import run_colour_warmup
 
     metrics = run_colour_warmup(

@@ -33,6 +33,7 @@ import torch
 
 from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset
+from relightanyone.format.schema import LIGHTS_NAME
 from relightanyone.model.fit.avatar import FittedAvatar, avatar_from_decoded
 from relightanyone.model.fit.views import FitViews, load_fit_views
 from relightanyone.model.networks.gaussians import Gaussians
@@ -40,7 +41,7 @@ from relightanyone.model.networks.presets import Stage2Preset
 from relightanyone.model.networks.reflectance import RelightParams, camera_centres, relight
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.networks.stage2 import Stage2Model, head_frame, texel_mesh_normals
-from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
+from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.model.train.losses import (
     composite_over_background,
     masked_l1,
@@ -50,6 +51,7 @@ from relightanyone.model.train.losses import (
     vertex_l2,
 )
 from relightanyone.model.train.run import load_run
+from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
 from relightanyone.model.train.sampling import iteration_generator
 from relightanyone.render.lights import PointLights, full_on_rig_from_table, olat_rig_from_table
 from relightanyone.render.rasterize import rasterize
@@ -116,7 +118,7 @@ def load_relightable_model(stage1_run: Path, stage2_run: Path) -> RelightableMod
     import json
 
     stage2_run = Path(stage2_run)
-    info_path = stage2_run / "run.json"
+    info_path = stage2_run / RUN_INFO_NAME
     if not info_path.is_file():
         raise FileNotFoundError(
             f"{info_path}: not a stage-2 run folder (train one with `relightanyone train stage2`)"
@@ -135,7 +137,7 @@ def load_relightable_model(stage1_run: Path, stage2_run: Path) -> RelightableMod
             f"does not know ({run.datasets}); pass the stage-1 run stage 2 was trained on"
         )
     dataset_path = Path(info["dataset"]["path"])
-    if not (dataset_path / "lights.arrow").is_file():
+    if not (dataset_path / LIGHTS_NAME).is_file():
         raise FileNotFoundError(
             f"{dataset_path / 'lights.arrow'}: the OLAT rig of stage-2 run {stage2_run} is missing "
             "(the fit models the unknown lighting with that rig)"
@@ -152,8 +154,8 @@ def load_relightable_model(stage1_run: Path, stage2_run: Path) -> RelightableMod
             f"{dataset_path}: lights.arrow has no rows; the fit models the unknown lighting with that rig"
         )
     columns = {name: [row[name] for row in rows] for name in rows[0]}
-    rig = olat_rig_from_table(columns, source=str(dataset_path / "lights.arrow"))
-    full_on_rig = full_on_rig_from_table(columns, rig, source=str(dataset_path / "lights.arrow"))
+    rig = olat_rig_from_table(columns, source=str(dataset_path / LIGHTS_NAME))
+    full_on_rig = full_on_rig_from_table(columns, rig, source=str(dataset_path / LIGHTS_NAME))
     return RelightableModel(
         stage1=run.model,
         lighting_code=run.model.lighting_codes[run.datasets.index(dataset_name)].detach().clone(),

@@ -19,8 +19,6 @@ import torch
 
 from relightanyone.errors import InputError
 
-CHECKPOINT_NAME = "checkpoint.pt"
-
 
 def capture_rng_state() -> dict[str, Any]:
     """Random states of Python, NumPy (global generator) and torch (CPU, and CUDA when present)."""

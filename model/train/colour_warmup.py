@@ -3,7 +3,7 @@
 A warm-up run trains stage 1 without lighting codes while learning one 3×3 ``C_d`` per uncalibrated
 dataset ``d``, applied to the render: ``dataset_rgb ≈ C_d @ shared_rgb``. Its inverse maps the dataset's
 colours into the shared space; it is stored beside the dataset's manifest with
-:func:`relightanyone.align.colour.write_learned_colour_matrix` (``aligned = M @ rgb``), the loader applies
+:func:`relightanyone.format.colour_alignment.write_learned_colour_matrix` (``aligned = M @ rgb``), the loader applies
 it, and the main run then trains with lighting codes on the aligned colours.
 """
 
@@ -14,10 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-from relightanyone.align.colour import COLOUR_ALIGNMENT_FILENAME, write_learned_colour_matrix
 from relightanyone.errors import InputError
+from relightanyone.format.colour_alignment import write_learned_colour_matrix
 from relightanyone.format.dataset_view import link_dataset_view
 from relightanyone.format.reader import load_manifest
+from relightanyone.format.schema import COLOUR_ALIGNMENT_NAME
 from relightanyone.model.networks.presets import Stage1Preset
 from relightanyone.model.train.stage1 import Stage1Config, train_stage1
 
@@ -103,7 +104,7 @@ def run_colour_warmup(
             target = names[name]
             if views_dir is not None:
                 target = link_dataset_view(
-                    target, Path(views_dir) / name, exclude=frozenset({COLOUR_ALIGNMENT_FILENAME})
+                    target, Path(views_dir) / name, exclude=frozenset({COLOUR_ALIGNMENT_NAME})
                 )
             write_learned_colour_matrix(
                 target,

@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from relightanyone.align.colour import read_learned_colour_matrix
 from relightanyone.errors import InputError
+from relightanyone.format.colour_alignment import read_learned_colour_matrix
 from relightanyone.format.reader import NormalizedDataset
-from relightanyone.format.schema import make_mesh_key
+from relightanyone.format.schema import MANIFEST_NAME, TEMPLATE_NAME, make_mesh_key
 from relightanyone.model.train.sampling import (
     CROP_STREAM,
     choose_crop,
@@ -35,7 +35,6 @@ from relightanyone.render.mesh import load_obj
 
 FULL_ON_PATTERN = "full"
 TRAIN_SPLIT = "train"
-TEMPLATE_NAME = "template.obj"
 
 
 @dataclass(frozen=True)
@@ -93,7 +92,7 @@ class Stage1Data:
         missing = [str(p) for p in paths if not p.is_file()]
         if missing:
             raise FileNotFoundError(
-                f"template mesh missing: {', '.join(missing)}; ingest writes {TEMPLATE_NAME} beside manifest.json "
+                f"template mesh missing: {', '.join(missing)}; ingest writes {TEMPLATE_NAME} beside {MANIFEST_NAME} "
                 "(re-run ingest, or copy the template OBJ of the tracked meshes there)"
             )
         counts = {str(p): len(load_obj(p).vertices) for p in paths}

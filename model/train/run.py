@@ -16,12 +16,13 @@ import torch
 
 from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset
+from relightanyone.format.schema import TEMPLATE_NAME
 from relightanyone.model.networks.gaussians import Gaussians, TexelBinding
 from relightanyone.model.networks.presets import Stage1Preset
 from relightanyone.model.networks.render import grid, orbit_cameras, save_png, to_display
 from relightanyone.model.networks.stage1 import Stage1Model
-from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
-from relightanyone.model.train.stage1 import RUN_INFO_NAME, TEMPLATE_NAME
+from relightanyone.model.train.checkpoint import load_checkpoint
+from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
 from relightanyone.render.mesh import load_obj
 from relightanyone.render.rasterize import rasterize
 from relightanyone.render.uv_binding import UVBinding

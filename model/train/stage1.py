@@ -26,12 +26,12 @@ import torch
 import torch.distributed as dist
 
 from relightanyone.errors import InputError
+from relightanyone.format.schema import TEMPLATE_NAME
 from relightanyone.model.networks.gaussians import TexelBinding
 from relightanyone.model.networks.presets import Stage1Preset
 from relightanyone.model.networks.render import comparison_strip, render_gaussians, to_display
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.train.checkpoint import (
-    CHECKPOINT_NAME,
     capture_rng_state,
     load_checkpoint,
     restore_rng_state,
@@ -41,13 +41,11 @@ from relightanyone.model.train.data import Stage1Data
 from relightanyone.model.train.held_out import evaluate_held_out
 from relightanyone.model.train.losses import composite_over_background, offset_weight, stage1_loss
 from relightanyone.model.train.memory import estimate_training_memory, format_memory
+from relightanyone.model.train.run_files import CHECKPOINT_NAME, METRICS_NAME, RUN_INFO_NAME
 from relightanyone.model.train.sampling import background_colours, balanced_batch
 from relightanyone.render.mesh import load_obj
 from relightanyone.render.uv_binding import UVBinding
 
-RUN_INFO_NAME = "run.json"
-METRICS_NAME = "metrics.json"
-TEMPLATE_NAME = "template.obj"
 # Fields that shape the network: a checkpoint can only resume a run that agrees on all of them.
 ARCHITECTURE_FIELDS = ("uv_size", "z_id_dim", "z_l_dim", "start_channels", "min_channels", "mesh_hidden")
 

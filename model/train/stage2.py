@@ -33,10 +33,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from relightanyone.align.colour import read_learned_colour_matrix
 from relightanyone.errors import InputError
+from relightanyone.format.colour_alignment import read_learned_colour_matrix
 from relightanyone.format.reader import NormalizedDataset, load_manifest
-from relightanyone.format.schema import make_mesh_key
+from relightanyone.format.schema import LIGHTS_NAME, TEMPLATE_NAME, make_mesh_key
 from relightanyone.model.networks.gaussians import TexelBinding
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
 from relightanyone.model.networks.reflectance import (
@@ -56,7 +56,6 @@ from relightanyone.model.networks.render import render_gaussians
 from relightanyone.model.networks.single_stage import SingleStageModel
 from relightanyone.model.networks.stage2 import Stage2Model, head_frame, texel_mesh_normals
 from relightanyone.model.train.checkpoint import (
-    CHECKPOINT_NAME,
     capture_rng_state,
     load_checkpoint,
     restore_rng_state,
@@ -72,6 +71,7 @@ from relightanyone.model.train.losses import (
     vertex_l2,
 )
 from relightanyone.model.train.run import load_run
+from relightanyone.model.train.run_files import CHECKPOINT_NAME, METRICS_NAME, RUN_INFO_NAME
 from relightanyone.model.train.sampling import (
     CROP_STREAM,
     background_colours,
@@ -86,9 +86,6 @@ from relightanyone.render.sh import lambertian_transfer
 from relightanyone.render.shading import point_light_sh
 from relightanyone.render.uv_binding import UVBinding
 
-RUN_INFO_NAME = "run.json"
-METRICS_NAME = "metrics.json"
-TEMPLATE_NAME = "template.obj"
 TRAIN_SPLIT = "train"
 PATTERN_STREAM = 2  # generator stream of the (full-on or OLAT, row) draws; crops use CROP_STREAM
 ARCHITECTURE_FIELDS = ("sh_order", "base_channels", "max_channels")
@@ -145,8 +142,8 @@ class OlatFrames:
                 f"{self.path}: no lights.arrow; stage 2 needs an OLAT dataset (kind 'olat') with its rig"
             )
         columns = {name: [row[name] for row in rows] for name in rows[0]}
-        self.rig = olat_rig_from_table(columns, source=str(self.path / "lights.arrow"))
-        self.full_on_rig = full_on_rig_from_table(columns, self.rig, source=str(self.path / "lights.arrow"))
+        self.rig = olat_rig_from_table(columns, source=str(self.path / LIGHTS_NAME))
+        self.full_on_rig = full_on_rig_from_table(columns, self.rig, source=str(self.path / LIGHTS_NAME))
         index = columns.get("index", list(range(len(rows))))
         light_patterns = {p: int(i) for p, i in zip(columns.get("pattern", []), index, strict=False) if p}
         self.colour_matrix = read_learned_colour_matrix(self.path)

@@ -19,7 +19,9 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-RUNNER_FILE_NAMES = frozenset({"_stage.json", "_stage.log"})
+from relightanyone.pipelines.dag.record import STAGE_LOG_NAME, STAGE_RECORD_NAME
+
+RUNNER_FILE_NAMES = frozenset({STAGE_RECORD_NAME, STAGE_LOG_NAME})
 HASH_CHUNK_BYTES = 1 << 20
 
 # (size, mtime_ns, sha256 hex) of one file
@@ -73,8 +75,8 @@ def is_runner_file(name: str) -> bool:
     log of a running stage beside its output (``.<output name>_stage.log``)."""
     return (
         name in RUNNER_FILE_NAMES
-        or (name.startswith("_stage.json.") and name.endswith(".tmp"))
-        or (name.startswith(".") and name.endswith("_stage.log"))
+        or (name.startswith(f"{STAGE_RECORD_NAME}.") and name.endswith(".tmp"))
+        or (name.startswith(".") and name.endswith(STAGE_LOG_NAME))
     )
 
 

@@ -10,14 +10,13 @@ from relightanyone.errors import InputError
 from relightanyone.format.arrow_io import sha256_file
 from relightanyone.format.schema import Provenance
 from relightanyone.model.train.checkpoint import load_checkpoint
+from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
 from relightanyone.pipelines.expand.task import cache_relightable_model
-
-CHECKPOINT_FILE = "checkpoint.pt"
 
 
 def run_info(run: Path, stage: str) -> dict:
     """``run.json`` of a training run, checked to be of ``stage`` ("stage1" or "stage2")."""
-    path = Path(run) / "run.json"
+    path = Path(run) / RUN_INFO_NAME
     if not path.is_file():
         raise FileNotFoundError(
             f"{path}: not a {stage} run folder (train one with `relightanyone train {stage}`)"
@@ -37,7 +36,9 @@ def stage2_olat_dataset(stage2: Path) -> Path:
     try:
         return Path(info["dataset"]["path"])
     except (KeyError, TypeError) as error:
-        raise InputError(f"{Path(stage2) / 'run.json'}: field 'dataset.path' is missing ({error})") from None
+        raise InputError(
+            f"{Path(stage2) / RUN_INFO_NAME}: field 'dataset.path' is missing ({error})"
+        ) from None
 
 
 def load_model_early(stage1: Path, stage2: Path) -> list[str]:
@@ -46,7 +47,7 @@ def load_model_early(stage1: Path, stage2: Path) -> list[str]:
 
     try:
         cache_relightable_model(Path(stage1).resolve(), Path(stage2).resolve())
-        return list(load_checkpoint(Path(stage1) / CHECKPOINT_FILE)["subjects"])
+        return list(load_checkpoint(Path(stage1) / CHECKPOINT_NAME)["subjects"])
     except (KeyError, TypeError, RuntimeError) as error:
         raise InputError(
             f"stage-1 run {stage1} and stage-2 run {stage2} do not load together ({error!r}); "
@@ -55,7 +56,7 @@ def load_model_early(stage1: Path, stage2: Path) -> list[str]:
 
 
 def checkpoint_sha256(run: Path, what: str) -> str:
-    path = Path(run) / CHECKPOINT_FILE
+    path = Path(run) / CHECKPOINT_NAME
     if not path.is_file():
         raise FileNotFoundError(f"{path}: the {what} run has no checkpoint; train it first")
     return sha256_file(path)
@@ -82,14 +83,14 @@ def dataset_provenance(source, settings, inputs: dict) -> Provenance:
             ),
             Provenance(
                 source_dataset=(
-                    f"stage-1 checkpoint {settings.stage1 / CHECKPOINT_FILE} "
+                    f"stage-1 checkpoint {settings.stage1 / CHECKPOINT_NAME} "
                     f"sha256:{inputs['stage1_checkpoint_sha256']}"
                 ),
                 licence=own.licence,
             ),
             Provenance(
                 source_dataset=(
-                    f"stage-2 checkpoint {settings.stage2 / CHECKPOINT_FILE} "
+                    f"stage-2 checkpoint {settings.stage2 / CHECKPOINT_NAME} "
                     f"sha256:{inputs['stage2_checkpoint_sha256']}"
                 ),
                 licence=own.licence,

@@ -26,6 +26,7 @@ from relightanyone.errors import InputError
 from relightanyone.format.arrow_io import sha256_file
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import (
+    LIGHTS_NAME,
     MANIFEST_NAME,
     DatasetInfo,
     LightRow,
@@ -178,7 +179,7 @@ def plan_expansion(
         "source_config_fingerprint": source_data.manifest.info.config_fingerprint,
         "stage1_checkpoint_sha256": checkpoint_sha256(stage1, "stage-1"),
         "stage2_checkpoint_sha256": checkpoint_sha256(stage2, "stage-2"),
-        "olat_lights_sha256": sha256_file(olat_dir / "lights.arrow"),
+        "olat_lights_sha256": sha256_file(olat_dir / LIGHTS_NAME),
         "envmaps_sha256": {envmap_pattern(p): sha256_file(p) for p in envmaps},
     }
     run_info(stage1, "stage1")

@@ -14,8 +14,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from relightanyone.align.colour import read_learned_colour_matrix
 from relightanyone.format.codecs import encode_image
+from relightanyone.format.colour_alignment import read_learned_colour_matrix
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import MeshRow, build_image_row, make_mesh_key
 from relightanyone.model.fit.fitter import load_relightable_model

@@ -58,6 +58,22 @@ def load_manifest(dataset_dir: Path) -> Manifest:
     return Manifest.from_json(values, where=str(path))
 
 
+class _IndexValues:
+    """A read-only attribute of a :class:`NormalizedDataset`: the sorted distinct values of one index column."""
+
+    def __init__(self, column: str):
+        self.column = column
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def __get__(self, dataset: NormalizedDataset | None, owner: type) -> Any:
+        return self if dataset is None else dataset._distinct(self.column)
+
+    def __set__(self, dataset: NormalizedDataset, value: Any) -> None:
+        raise AttributeError(f"{self.name} is read from the index and cannot be set")
+
+
 class NormalizedDataset:
     """A complete normalized dataset folder; rows by key in O(1), filters over the index."""
 
@@ -110,21 +126,10 @@ class NormalizedDataset:
     def _distinct(self, column: str) -> list[str]:
         return sorted(set(self.index.column(column).to_pylist()))
 
-    @property
-    def subjects(self) -> list[str]:
-        return self._distinct("subject")
-
-    @property
-    def cameras(self) -> list[str]:
-        return self._distinct("camera")
-
-    @property
-    def patterns(self) -> list[str]:
-        return self._distinct("pattern")
-
-    @property
-    def splits(self) -> list[str]:
-        return self._distinct("split")
+    subjects = _IndexValues("subject")
+    cameras = _IndexValues("camera")
+    patterns = _IndexValues("pattern")
+    splits = _IndexValues("split")
 
     def shard_path(self, shard: int) -> Path:
         return self.path / self.manifest.shards[shard].file

@@ -1,29 +1,14 @@
 """The one schema of the normalized dataset, format version 1.
 
-Everything that is written to or read from ``<root>/<dataset>/`` is described here: the Arrow schemas of
-the image shards, ``meshes.arrow``, ``lights.arrow`` and the shard index, the manifest model, the quarantine
-entry, and typed rows with builders that check them. Writers and readers import these definitions; no
-other module spells a field name of its own.
+Everything that is written to or read from ``<root>/<dataset>/`` is described here: the tables of the
+image shards, ``meshes.arrow``, ``lights.arrow`` and the shard index, the file names of a dataset, the
+manifest model, the quarantine entry, and typed rows with builders that check them. Writers and readers
+import these definitions; no other module spells a field name of its own.
 
-Image row fields (one row per stored image)::
-
-    key             string   unique; "<dataset>/<subject>/<frame:06d>/<camera>/<pattern>"
-    dataset         string
-    subject         string
-    frame           int32
-    camera          string
-    pattern         string   "full", "olat-017", or an environment-map name
-    split           string   "train", "val", "test", ...
-    width, height   int32    size of the stored image in pixels
-    K               fixed_size_list<float64>[9]    3x3 intrinsics, row-major, pixels of the stored image
-    w2c             fixed_size_list<float64>[16]   4x4 world-to-camera, row-major, OpenCV camera
-    image           binary   encoded linear RGB (see ``image_encoding`` and ``codecs``)
-    image_encoding  string   "png16" | "exr-half" | "raw-f16"
-    mask            binary   8-bit single-channel PNG, 255 = foreground
-    crop            fixed_size_list<int32>[4]      x0, y0, x1, y1 of the stored image in source pixels
-    colour_matrix   fixed_size_list<float64>[9]    3x3 row-major matrix already applied: rgb_out = M @ rgb_src
-    source          string   path of the item inside the native dataset
-    source_sha256   string   hex sha256 of the native file
+Each column is declared once, as a :class:`Column` (name, Arrow type, nullability, a one-line meaning,
+and how a Python value is stored): the row dataclasses declare theirs as fields (:func:`column`), so the
+Arrow schemas (:meth:`Table.schema`), the rows' conversions and the tables of ``docs/format.md``
+(:meth:`Table.markdown`) all derive from the same declaration.
 """
 
 from __future__ import annotations
@@ -31,7 +16,9 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from dataclasses import asdict, dataclass, field, fields
+from collections.abc import Callable
+from dataclasses import MISSING, asdict, dataclass, field, fields, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -52,90 +39,128 @@ MESHES_NAME = "meshes.arrow"
 LIGHTS_NAME = "lights.arrow"
 INDEX_NAME = "index.arrow"
 QUARANTINE_NAME = "quarantine.jsonl"
-# Side files ingest writes beside the shards: the template mesh of meshes.arrow and its neck mask.
+SHARD_PATTERN = "images-{:05d}.arrow"
+# Side files beside the shards: ingest's template mesh of meshes.arrow, its neck mask and its report, and
+# the learned colour matrix the colour warm-up writes into a view of the dataset.
 TEMPLATE_NAME = "template.obj"
 NECK_MASK_NAME = "template_neck_mask.txt"
-SHARD_PATTERN = "images-{:05d}.arrow"
-
-
-def _with_metadata(schema: pa.Schema, table: str) -> pa.Schema:
-    return schema.with_metadata({**SCHEMA_METADATA, b"table": table.encode()})
-
-
-IMAGE_SCHEMA = _with_metadata(
-    pa.schema(
-        [
-            pa.field("key", pa.string(), nullable=False),
-            pa.field("dataset", pa.string(), nullable=False),
-            pa.field("subject", pa.string(), nullable=False),
-            pa.field("frame", pa.int32(), nullable=False),
-            pa.field("camera", pa.string(), nullable=False),
-            pa.field("pattern", pa.string(), nullable=False),
-            pa.field("split", pa.string(), nullable=False),
-            pa.field("width", pa.int32(), nullable=False),
-            pa.field("height", pa.int32(), nullable=False),
-            pa.field("K", pa.list_(pa.float64(), 9), nullable=False),
-            pa.field("w2c", pa.list_(pa.float64(), 16), nullable=False),
-            pa.field("image", pa.binary(), nullable=False),
-            pa.field("image_encoding", pa.string(), nullable=False),
-            pa.field("mask", pa.binary(), nullable=False),
-            pa.field("crop", pa.list_(pa.int32(), 4), nullable=False),
-            pa.field("colour_matrix", pa.list_(pa.float64(), 9), nullable=False),
-            pa.field("source", pa.string(), nullable=False),
-            pa.field("source_sha256", pa.string(), nullable=False),
-        ]
-    ),
-    "images",
+INGEST_REPORT_NAME = "ingest_report.json"
+COLOUR_ALIGNMENT_NAME = "colour_alignment.json"
+# The files a dataset may hold besides the manifest and the files it lists.
+UNLISTED_FILE_NAMES = (
+    QUARANTINE_NAME,
+    TEMPLATE_NAME,
+    NECK_MASK_NAME,
+    INGEST_REPORT_NAME,
+    COLOUR_ALIGNMENT_NAME,
 )
 
-MESH_SCHEMA = _with_metadata(
-    pa.schema(
-        [
-            pa.field("key", pa.string(), nullable=False),
-            pa.field("subject", pa.string(), nullable=False),
-            pa.field("frame", pa.int32(), nullable=False),
-            pa.field("vertex_count", pa.int32(), nullable=False),
-            # Flattened (V*3,) float32 in canonical space, metres; V varies only between topologies.
-            pa.field("vertices", pa.list_(pa.float32()), nullable=False),
-        ]
-    ),
-    "meshes",
-)
 
-LIGHT_SCHEMA = _with_metadata(
-    pa.schema(
-        [
-            pa.field("index", pa.int32(), nullable=False),
-            pa.field("name", pa.string(), nullable=False),
-            pa.field("position_m", pa.list_(pa.float64(), 3), nullable=False),
-            pa.field("intensity_rgb", pa.list_(pa.float64(), 3), nullable=False),
-            pa.field("pattern", pa.string(), nullable=False),
-            # The light's intensity in the full-on pattern (light stages often shorten each light's
-            # exposure there); null when it equals intensity_rgb or is unknown.
-            pa.field("full_on_intensity_rgb", pa.list_(pa.float64(), 3), nullable=True),
-        ]
-    ),
-    "lights",
-)
+def _unchanged(value: Any) -> Any:
+    return value
 
-# The metadata columns of every image row plus where the row lives; read in one go by the reader.
-INDEX_SCHEMA = _with_metadata(
-    pa.schema(
-        [
-            pa.field("key", pa.string(), nullable=False),
-            pa.field("subject", pa.string(), nullable=False),
-            pa.field("frame", pa.int32(), nullable=False),
-            pa.field("camera", pa.string(), nullable=False),
-            pa.field("pattern", pa.string(), nullable=False),
-            pa.field("split", pa.string(), nullable=False),
-            pa.field("shard", pa.int32(), nullable=False),
-            pa.field("batch_offset", pa.int64(), nullable=False),
-        ]
-    ),
-    "index",
-)
 
-INDEX_COLUMNS = ("key", "subject", "frame", "camera", "pattern", "split")
+@dataclass(frozen=True)
+class Column:
+    """One column of a table: its name, Arrow type, nullability and meaning, and how a row's Python
+    value is stored in it (``to_arrow``) and read back (``from_arrow``)."""
+
+    name: str
+    arrow_type: pa.DataType
+    meaning: str
+    nullable: bool = False
+    to_arrow: Callable[[Any], Any] = _unchanged
+    from_arrow: Callable[[Any], Any] = _unchanged
+
+    def arrow_field(self) -> pa.Field:
+        return pa.field(self.name, self.arrow_type, nullable=self.nullable)
+
+
+_COLUMN_KEY = "relightanyone.format.column"
+
+
+def column(
+    arrow_type: pa.DataType,
+    meaning: str,
+    *,
+    nullable: bool = False,
+    to_arrow: Callable[[Any], Any] = _unchanged,
+    from_arrow: Callable[[Any], Any] = _unchanged,
+    default: Any = MISSING,
+) -> Any:
+    """A dataclass field that is also a table column; the column takes the field's name."""
+    declared = Column("", arrow_type, meaning, nullable, to_arrow, from_arrow)
+    return field(default=default, metadata={_COLUMN_KEY: declared})
+
+
+def _flat_floats(size: int, matrix: Any) -> list[float]:
+    return np.asarray(matrix, dtype=np.float64).reshape(size).tolist()
+
+
+def _float_matrix(shape: tuple[int, int], values: Any) -> np.ndarray:
+    return np.asarray(values, dtype=np.float64).reshape(shape)
+
+
+def matrix_column(shape: tuple[int, int], meaning: str) -> Any:
+    """A float64 matrix field of ``shape``, stored row-major as a fixed-size list and read back with its
+    2-D shape."""
+    size = shape[0] * shape[1]
+    return column(
+        pa.list_(pa.float64(), size),
+        meaning,
+        to_arrow=partial(_flat_floats, size),
+        from_arrow=partial(_float_matrix, shape),
+    )
+
+
+def _int_list(values: Any) -> list[int]:
+    return [int(v) for v in values]
+
+
+def _int_tuple(values: Any) -> tuple[int, ...]:
+    return tuple(int(v) for v in values)
+
+
+def row_columns(row_type: type) -> tuple[Column, ...]:
+    """The columns a row dataclass declares with :func:`column`, in field order."""
+    return tuple(
+        replace(f.metadata[_COLUMN_KEY], name=f.name) for f in fields(row_type) if _COLUMN_KEY in f.metadata
+    )
+
+
+def _type_name(arrow_type: pa.DataType) -> str:
+    """Arrow type as the documentation writes it: ``fixed_size_list<float64>[9]``, ``list<float32>``."""
+    if pa.types.is_fixed_size_list(arrow_type):
+        return f"fixed_size_list<{_type_name(arrow_type.value_type)}>[{arrow_type.list_size}]"
+    if pa.types.is_list(arrow_type):
+        return f"list<{_type_name(arrow_type.value_type)}>"
+    return {pa.float64(): "float64", pa.float32(): "float32"}.get(arrow_type, str(arrow_type))
+
+
+@dataclass(frozen=True)
+class Table:
+    """An Arrow table of the format: its ``table`` metadata value and its columns, in order."""
+
+    name: str
+    columns: tuple[Column, ...]
+
+    def schema(self) -> pa.Schema:
+        """The Arrow schema, with the format's metadata and this table's name."""
+        fields_ = [c.arrow_field() for c in self.columns]
+        return pa.schema(fields_).with_metadata({**SCHEMA_METADATA, b"table": self.name.encode()})
+
+    def columns_named(self, *names: str) -> tuple[Column, ...]:
+        """The columns called ``names``, in that order."""
+        by_name = {c.name: c for c in self.columns}
+        return tuple(by_name[name] for name in names)
+
+    def markdown(self) -> str:
+        """The documentation table: one line per column (name, Arrow type, meaning)."""
+        lines = ["| field | Arrow type | meaning |", "|---|---|---|"]
+        for c in self.columns:
+            arrow_type = _type_name(c.arrow_type) + (", nullable" if c.nullable else "")
+            lines.append(f"| `{c.name}` | {arrow_type} | {c.meaning} |")
+        return "\n".join(lines) + "\n"
 
 
 class SchemaError(InputError):
@@ -157,47 +182,63 @@ def make_mesh_key(subject: str, frame: int) -> str:
 
 @dataclass
 class ImageRow:
-    """One image row. Matrices are numpy arrays: ``K`` (3, 3), ``w2c`` (4, 4), ``colour_matrix`` (3, 3)."""
+    """One image row: one stored image and its camera. Each field is a column of ``images-*.arrow``, in
+    this order; matrices are numpy arrays: ``K`` (3, 3), ``w2c`` (4, 4), ``colour_matrix`` (3, 3)."""
 
-    key: str
-    dataset: str
-    subject: str
-    frame: int
-    camera: str
-    pattern: str
-    split: str
-    width: int
-    height: int
-    K: np.ndarray
-    w2c: np.ndarray
-    image: bytes
-    image_encoding: str
-    mask: bytes
-    crop: tuple[int, int, int, int]
-    colour_matrix: np.ndarray
-    source: str
-    source_sha256: str
+    key: str = column(
+        pa.string(), "unique: `<dataset>/<subject>/<frame:06d>/<camera>/<pattern>`; rows are sorted by it"
+    )
+    dataset: str = column(pa.string(), "dataset name; no `/` inside")
+    subject: str = column(pa.string(), "subject id; no `/` inside")
+    frame: int = column(pa.int32(), "frame number", to_arrow=int)
+    camera: str = column(pa.string(), "camera name; no `/` inside")
+    pattern: str = column(
+        pa.string(), "lighting: `full`, `olat-017`, or an environment-map name; no `/` inside"
+    )
+    split: str = column(pa.string(), "`train`, `val`, `test`, ...")
+    width: int = column(pa.int32(), "stored image width in pixels", to_arrow=int)
+    height: int = column(pa.int32(), "stored image height in pixels", to_arrow=int)
+    K: np.ndarray = matrix_column((3, 3), "3×3 intrinsics, row-major, in pixels of the stored image")
+    w2c: np.ndarray = matrix_column((4, 4), "4×4 world-to-camera, row-major, OpenCV camera, last row 0 0 0 1")
+    image: bytes = column(pa.binary(), "encoded linear RGB, see `image_encoding`")
+    image_encoding: str = column(pa.string(), "`raw-f16` (default), `exr-half` or `png16`")
+    mask: bytes = column(pa.binary(), "8-bit single-channel PNG, 255 = head")
+    crop: tuple[int, int, int, int] = column(
+        pa.list_(pa.int32(), 4),
+        "x0, y0, x1, y1 of the stored image in source pixels",
+        to_arrow=_int_list,
+        from_arrow=_int_tuple,
+    )
+    colour_matrix: np.ndarray = matrix_column(
+        (3, 3), "3×3 already applied, row-major: `rgb = M @ rgb_source`"
+    )
+    source: str = column(pa.string(), "path of the item inside the native dataset")
+    source_sha256: str = column(pa.string(), "hex sha256 of that native file")
 
     def to_arrow_dict(self) -> dict[str, Any]:
         """The row as plain Python values in ``IMAGE_SCHEMA`` field order (matrices flattened row-major)."""
         validate_image_row(self)
-        out = {f.name: getattr(self, f.name) for f in fields(self)}
-        out["K"] = np.asarray(self.K, dtype=np.float64).reshape(9).tolist()
-        out["w2c"] = np.asarray(self.w2c, dtype=np.float64).reshape(16).tolist()
-        out["colour_matrix"] = np.asarray(self.colour_matrix, dtype=np.float64).reshape(9).tolist()
-        out["crop"] = [int(v) for v in self.crop]
-        out["frame"], out["width"], out["height"] = int(self.frame), int(self.width), int(self.height)
-        return out
+        return {c.name: c.to_arrow(getattr(self, c.name)) for c in IMAGE_TABLE.columns}
 
     @classmethod
     def from_arrow_dict(cls, values: dict[str, Any]) -> ImageRow:
         """Inverse of ``to_arrow_dict``: matrices come back as float64 arrays of their 2-D shape."""
-        kwargs = {f.name: values[f.name] for f in fields(cls)}
-        kwargs["K"] = np.asarray(values["K"], dtype=np.float64).reshape(3, 3)
-        kwargs["w2c"] = np.asarray(values["w2c"], dtype=np.float64).reshape(4, 4)
-        kwargs["colour_matrix"] = np.asarray(values["colour_matrix"], dtype=np.float64).reshape(3, 3)
-        kwargs["crop"] = tuple(int(v) for v in values["crop"])
-        return cls(**kwargs)
+        return cls(**{c.name: c.from_arrow(values[c.name]) for c in IMAGE_TABLE.columns})
+
+
+IMAGE_TABLE = Table("images", row_columns(ImageRow))
+IMAGE_SCHEMA = IMAGE_TABLE.schema()
+# The metadata columns of every image row, copied into the index so the reader gets them in one go.
+INDEX_COLUMNS = ("key", "subject", "frame", "camera", "pattern", "split")
+INDEX_TABLE = Table(
+    "index",
+    (
+        *IMAGE_TABLE.columns_named(*INDEX_COLUMNS),
+        Column("shard", pa.int32(), "number of the shard holding the row (its place in the manifest's list)"),
+        Column("batch_offset", pa.int64(), "byte offset of the row's record batch in that shard"),
+    ),
+)
+INDEX_SCHEMA = INDEX_TABLE.schema()
 
 
 def build_image_row(
@@ -332,17 +373,44 @@ class MeshRow:
         }
 
 
+MESH_TABLE = Table(
+    "meshes",
+    (
+        Column("key", pa.string(), "unique: `<subject>/<frame:06d>`"),
+        *IMAGE_TABLE.columns_named("subject", "frame"),
+        Column("vertex_count", pa.int32(), "V, the number of vertices"),
+        Column(
+            "vertices",
+            pa.list_(pa.float32()),
+            "V×3 flattened, canonical space, metres; V varies only between topologies",
+        ),
+    ),
+)
+MESH_SCHEMA = MESH_TABLE.schema()
+
+
 @dataclass
 class LightRow:
     """One rig light: position (3,) in metres in canonical space, linear RGB intensity (3,) in its OLAT
-    pattern, and (when it differs) its intensity (3,) in the full-on pattern."""
+    pattern, and (when it differs) its intensity (3,) in the full-on pattern. Each field is a column of
+    ``lights.arrow``, in this order."""
 
-    index: int
-    name: str
-    position_m: tuple[float, float, float]
-    intensity_rgb: tuple[float, float, float]
-    pattern: str
-    full_on_intensity_rgb: tuple[float, float, float] | None = None
+    index: int = column(pa.int32(), "light number in the rig")
+    name: str = column(pa.string(), "the rig's name of the light")
+    position_m: tuple[float, float, float] = column(
+        pa.list_(pa.float64(), 3), "position in canonical space, metres"
+    )
+    intensity_rgb: tuple[float, float, float] = column(
+        pa.list_(pa.float64(), 3), "linear RGB intensity in its OLAT pattern"
+    )
+    pattern: str = column(pa.string(), "the image pattern this light is on in, e.g. `olat-017`")
+    full_on_intensity_rgb: tuple[float, float, float] | None = column(
+        pa.list_(pa.float64(), 3),
+        "intensity in the full-on pattern (light stages often shorten each light's exposure there); "
+        "null when it equals `intensity_rgb` or is unknown",
+        nullable=True,
+        default=None,
+    )
 
     def to_arrow_dict(self) -> dict[str, Any]:
         values = asdict(self)
@@ -354,6 +422,12 @@ class LightRow:
                 raise SchemaError(f"light {self.index} ({self.name}): {name} must be 3 finite numbers")
             values[name] = vector
         return values
+
+
+LIGHT_TABLE = Table("lights", row_columns(LightRow))
+LIGHT_SCHEMA = LIGHT_TABLE.schema()
+# Every table of the format, in the order docs/format.md describes them.
+TABLES = (IMAGE_TABLE, INDEX_TABLE, MESH_TABLE, LIGHT_TABLE)
 
 
 @dataclass
@@ -463,6 +537,10 @@ class Manifest:
 
     def dumps(self) -> str:
         return json.dumps(self.to_json(), indent=2, sort_keys=False, ensure_ascii=False) + "\n"
+
+    def listed_files(self) -> list[FileEntry]:
+        """The files the manifest lists: shards, index, and the mesh and light tables when present."""
+        return [*self.shards, self.index, *(e for e in (self.meshes, self.lights) if e is not None)]
 
     @classmethod
     def from_json(cls, values: dict[str, Any], where: str = "manifest.json") -> Manifest:

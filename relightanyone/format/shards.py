@@ -62,6 +62,7 @@ from relightanyone.format.arrow_io import (
 from relightanyone.format.schema import (
     IMAGE_SCHEMA,
     INDEX_COLUMNS,
+    INDEX_NAME,
     INDEX_SCHEMA,
     LIGHT_SCHEMA,
     LIGHTS_NAME,
@@ -82,6 +83,13 @@ from relightanyone.format.schema import (
 
 DEFAULT_MAX_SHARD_BYTES = 256 << 20
 PARTS_DIR = "_parts"
+# Files below PARTS_DIR: per task, its rows and their byte offsets; per dataset, the config stamp and the
+# staged lights and quarantine.
+_PART_IMAGES = "images.arrow"
+_PART_OFFSETS = "offsets.json"
+_CONFIG_STAMP = "_config.json"
+_STAGED_LIGHTS = "_lights.arrow"
+_STAGED_QUARANTINE = "_quarantine.jsonl"
 _TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 _SHARD_NAME = re.compile(r"^images-(\d{5})\.arrow$")
 
@@ -172,7 +180,7 @@ class PartWriter:
         self.tmp_dir = parts_dir / f"{task}.tmp"
         shutil.rmtree(self.tmp_dir, ignore_errors=True)
         self.tmp_dir.mkdir(parents=True)
-        self._images = StreamFileWriter(self.tmp_dir / "images.arrow", IMAGE_SCHEMA, compression_level)
+        self._images = StreamFileWriter(self.tmp_dir / _PART_IMAGES, IMAGE_SCHEMA, compression_level)
         self._keys: list[str] = []
         self._index: list[list] = []  # INDEX_COLUMNS of every row, so the commit need not decode rows
         self._key_set: set[str] = set()
@@ -203,7 +211,7 @@ class PartWriter:
         """Finish the task's files and publish the task folder."""
         self._images.finish()
         atomic_write_bytes(
-            self.tmp_dir / "offsets.json",
+            self.tmp_dir / _PART_OFFSETS,
             json.dumps({"keys": self._keys, "offsets": self._images.offsets, "index": self._index}).encode(),
         )
         meshes = [self._meshes[k] for k in sorted(self._meshes)]
@@ -257,7 +265,7 @@ class ShardWriter:
         self.dataset_dir.mkdir(parents=True, exist_ok=True)
         (self.dataset_dir / MANIFEST_NAME).unlink(missing_ok=True)
         fsync_dir(self.dataset_dir)
-        stamp = self.parts_dir / "_config.json"
+        stamp = self.parts_dir / _CONFIG_STAMP
         if self.parts_dir.exists() and (
             not stamp.exists()
             or json.loads(stamp.read_text())["config_fingerprint"] != self.info.config_fingerprint
@@ -266,7 +274,7 @@ class ShardWriter:
         self.parts_dir.mkdir(exist_ok=True)
         for tmp in [*self.dataset_dir.glob("*.tmp"), *self.parts_dir.glob("*.tmp")]:
             shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
-        for stale in ("_lights.arrow", "_quarantine.jsonl"):
+        for stale in (_STAGED_LIGHTS, _STAGED_QUARANTINE):
             (self.parts_dir / stale).unlink(missing_ok=True)
         atomic_write_bytes(stamp, json.dumps({"config_fingerprint": self.info.config_fingerprint}).encode())
 
@@ -286,11 +294,11 @@ class ShardWriter:
         if len(set(indices)) != len(indices):
             raise SchemaError(f"{self.info.name}: light indices are not unique")
         rows = [light.to_arrow_dict() for light in sorted(lights, key=lambda light: light.index)]
-        write_table_file(self.parts_dir / "_lights.arrow", pa.Table.from_pylist(rows, schema=LIGHT_SCHEMA))
+        write_table_file(self.parts_dir / _STAGED_LIGHTS, pa.Table.from_pylist(rows, schema=LIGHT_SCHEMA))
 
     def quarantine(self, entry: QuarantineEntry) -> bool:
         """Record a refusal that belongs to no task (append-safe; deduplicated by item)."""
-        return QuarantineLog(self.parts_dir / "_quarantine.jsonl").append(entry)
+        return QuarantineLog(self.parts_dir / _STAGED_QUARANTINE).append(entry)
 
     def commit(self, progress: bool = False) -> Manifest:
         """Merge all finished parts in key order into shards, write the tables and the manifest (last)."""
@@ -304,7 +312,7 @@ class ShardWriter:
         located: list[tuple[str, int, int, list | None]] = []
         owner: dict[str, str] = {}
         for part_index, part in enumerate(parts):
-            offsets = json.loads((part / "offsets.json").read_text())
+            offsets = json.loads((part / _PART_OFFSETS).read_text())
             index = offsets.get("index") or [None] * len(offsets["keys"])  # absent in older parts
             for key, offset, values in zip(offsets["keys"], offsets["offsets"], index, strict=True):
                 if key in owner:
@@ -314,7 +322,7 @@ class ShardWriter:
                 owner[key] = part.name
                 located.append((key, part_index, offset, values))
         located.sort()
-        sources = [pa.memory_map(str(part / "images.arrow")) for part in parts]
+        sources = [pa.memory_map(str(part / _PART_IMAGES)) for part in parts]
 
         shards, index_rows = self._write_shards(located, sources, progress and tqdm)
         index_entry = self._write_index(index_rows)
@@ -383,10 +391,8 @@ class ShardWriter:
         return shards, index_rows
 
     def _write_index(self, index_rows: list[dict]) -> FileEntry:
-        write_table_file(
-            self.dataset_dir / "index.arrow", pa.Table.from_pylist(index_rows, schema=INDEX_SCHEMA)
-        )
-        return self._entry("index.arrow", len(index_rows))
+        write_table_file(self.dataset_dir / INDEX_NAME, pa.Table.from_pylist(index_rows, schema=INDEX_SCHEMA))
+        return self._entry(INDEX_NAME, len(index_rows))
 
     def _write_meshes(self, parts: Iterable[Path]) -> FileEntry | None:
         tables = [read_table_file(part / MESHES_NAME) for part in parts]
@@ -403,7 +409,7 @@ class ShardWriter:
         return self._entry(MESHES_NAME, table.num_rows)
 
     def _publish_lights(self) -> FileEntry | None:
-        staged, path = self.parts_dir / "_lights.arrow", self.dataset_dir / LIGHTS_NAME
+        staged, path = self.parts_dir / _STAGED_LIGHTS, self.dataset_dir / LIGHTS_NAME
         if not staged.exists():
             path.unlink(missing_ok=True)
             return None
@@ -414,7 +420,7 @@ class ShardWriter:
     def _write_quarantine(self, parts: Iterable[Path]) -> int:
         entries: dict[str, QuarantineEntry] = {}
         logs = [QuarantineLog(part / QUARANTINE_NAME) for part in parts]
-        logs.append(QuarantineLog(self.parts_dir / "_quarantine.jsonl"))
+        logs.append(QuarantineLog(self.parts_dir / _STAGED_QUARANTINE))
         for log in logs:
             for entry in log.entries():
                 entries.setdefault(entry.item, entry)
@@ -426,7 +432,7 @@ class ShardWriter:
 def dataset_dirs(root: Path) -> list[Path]:
     """``root`` itself when it holds a dataset (manifest or parts), else its sub-folders that do."""
     root = Path(root)
-    markers = (MANIFEST_NAME, PARTS_DIR, "index.arrow")
+    markers = (MANIFEST_NAME, PARTS_DIR, INDEX_NAME)
     if any((root / m).exists() for m in markers) or any(root.glob("images-*.arrow*")):
         return [root]
     return sorted(

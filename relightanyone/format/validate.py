@@ -25,6 +25,7 @@ from relightanyone.format.schema import (
     IMAGE_SCHEMA,
     INDEX_NAME,
     LIGHT_SCHEMA,
+    MANIFEST_NAME,
     MESH_SCHEMA,
     QUARANTINE_NAME,
     FileEntry,
@@ -127,13 +128,13 @@ def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = Fa
     try:
         manifest = load_manifest(dataset_dir)
     except (IncompleteDatasetError, SchemaError) as error:
-        return [Problem(str(dataset_dir / "manifest.json"), None, str(error))]
+        return [Problem(str(dataset_dir / MANIFEST_NAME), None, str(error))]
     problems: list[Problem] = []
     listed = Counter(entry.file for entry in manifest.shards)
     for name, times in sorted(listed.items()):
         if times > 1:
             problems.append(
-                Problem(str(dataset_dir / "manifest.json"), None, f"shard {name} is listed {times} times")
+                Problem(str(dataset_dir / MANIFEST_NAME), None, f"shard {name} is listed {times} times")
             )
     for path in sorted(dataset_dir.glob("images-*.arrow")):
         if path.name not in listed:
