@@ -124,7 +124,7 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         dry_run,
     ):
         from relightanyone.ingest.records import AdapterOptions, LayoutError
-        from relightanyone.ingest.runner import found_lines, ingest_dataset, prepare
+        from relightanyone.ingest.runner import found_lines, ingest_dataset, ingest_executor, prepare
 
         adapter = load_adapter(command_name)
         options = AdapterOptions(
@@ -138,12 +138,10 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         )
         try:
             adapter.detect(src)
-            if executor == "local" and not dry_run:
-                from relightanyone.ingest.executors import warm_local_pool
-
+            if not dry_run:
                 # After the cheap layout check (a wrong SRC fails at once, with no pool to wait for), so the
                 # workers' imports overlap the planning.
-                warm_local_pool(workers)
+                ingest_executor(workers, executor).warm()
             plan = adapter.plan(src, options)
             prepared = prepare(plan, tracking, preset, template, workers=workers, executor=executor)
         except (LayoutError, FileNotFoundError, ValueError) as error:
