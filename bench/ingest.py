@@ -280,11 +280,11 @@ def median_run(runs: list[dict], key: str) -> dict:
 def child_run(world: Path, subjects: int, workers: int) -> None:
     """Run in a fresh process: ingest ``subjects`` subjects cold and print the result with peak RSS.
 
-    Like the ``ingest`` command, it starts the worker pool before planning (``warm_local_pool``)."""
+    Like the ``ingest`` command, it starts the worker pool before planning (``Executor.warm``)."""
     start = time.perf_counter()
-    from relightanyone.ingest.executors import warm_local_pool
+    from relightanyone.ingest.runner import ingest_executor
 
-    warm_local_pool(workers)
+    ingest_executor(workers).warm()
     plan = make_plan(world, subjects)
     result = end_to_end(plan, world, workers)
     result["seconds_with_imports"] = round(time.perf_counter() - start, 3)

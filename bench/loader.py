@@ -24,7 +24,7 @@ from relightanyone.format.codecs import decode_image, decode_mask, encode_image,
 from relightanyone.format.examples import face_like_image, look_at_w2c
 from relightanyone.format.schema import DatasetInfo, Provenance, build_image_row
 from relightanyone.format.shards import ShardWriter
-from relightanyone.format.torch_dataset import NormalizedTorchDataset
+from relightanyone.format.torch_dataset import NormalizedTorchDataset, collate_rows
 
 ENCODINGS = ("png16", "exr-half", "raw-f16")
 RESULT = Path(__file__).resolve().parent / "results" / "loader.json"
@@ -86,7 +86,12 @@ def _fetch_decode_ms(dataset_dir: Path, repeats: int) -> dict[str, float]:
 def _loader_rows_per_s(dataset_dir: Path, num_workers: int, epochs: int) -> float:
     dataset = NormalizedTorchDataset(dataset_dir)
     loader = torch.utils.data.DataLoader(
-        dataset, batch_size=4, num_workers=num_workers, shuffle=True, persistent_workers=num_workers > 0
+        dataset,
+        batch_size=4,
+        num_workers=num_workers,
+        shuffle=True,
+        persistent_workers=num_workers > 0,
+        collate_fn=collate_rows,
     )
     for _ in loader:  # warm-up epoch: worker start-up and page cache
         pass

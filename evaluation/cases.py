@@ -8,6 +8,9 @@ lights) with the ground-truth views under it. Cases come from
   the subject's normalized rows (:mod:`relightanyone.evaluation.truth`),
 * any function giving the true image of (camera, light) (:func:`callable_olat_cases`), for worlds whose
   truth is analytic.
+
+Rows of normalized datasets are read through
+:class:`~relightanyone.format.torch_dataset.NormalizedTorchDataset`, as training and fitting read them.
 """
 
 from __future__ import annotations
@@ -28,9 +31,8 @@ from relightanyone.evaluation.truth import (
     warp_native_to_row,
     world_to_normalized,
 )
-from relightanyone.format.codecs import decode_mask
-from relightanyone.format.colour_alignment import read_learned_colour_matrix
 from relightanyone.format.reader import NormalizedDataset
+from relightanyone.format.torch_dataset import LEARNED, NormalizedTorchDataset, image_hwc
 from relightanyone.render.camera import Cameras
 from relightanyone.render.lights import PointLights
 
@@ -48,6 +50,19 @@ class EvalView:
     height: int
     image: np.ndarray
     mask: np.ndarray
+
+
+def item_view(item: dict) -> EvalView:
+    """The :class:`EvalView` of a dataset item (its image, mask and camera)."""
+    return EvalView(
+        item["camera"],
+        item["K"].numpy(),
+        item["w2c"].numpy(),
+        item["width"],
+        item["height"],
+        image_hwc(item),
+        item["mask"][0].numpy(),
+    )
 
 
 @dataclass
@@ -93,26 +108,16 @@ def row_olat_cases(
 ) -> list[LightCase]:
     """OLAT ground truth from a subject's own OLAT rows (colour matrix applied as for fitting)."""
 
-    dataset = NormalizedDataset(dataset_dir)
-    matrix = read_learned_colour_matrix(dataset.path)
+    rows = NormalizedTorchDataset(dataset_dir, subjects=subject, cameras=cameras, colour_matrix=LEARNED)
     patterns = rig_patterns(dataset_dir)
+    row_cameras, row_patterns = rows.column("camera"), rows.column("pattern")
     cases = []
     for index in light_indices:
-        rows = {}
-        for key in dataset.select(subjects=subject, patterns=patterns[index]):
-            row = dataset.row(key)
-            if row.camera in cameras and row.camera not in rows:
-                rows[row.camera] = row
-        views = []
-        for camera in cameras:
-            if camera not in rows:
-                continue
-            row, image, mask = dataset.decoded(rows[camera].key)
-            if matrix is not None:
-                image = image @ matrix.T.astype(np.float32)
-            views.append(
-                EvalView(camera, row.K, row.w2c, row.width, row.height, image, mask.astype(np.float32))
-            )
+        first = {}  # camera -> its first row under this light
+        for i, (camera, pattern) in enumerate(zip(row_cameras, row_patterns, strict=True)):
+            if pattern == patterns[index]:
+                first.setdefault(camera, i)
+        views = [item_view(rows[first[camera]]) for camera in cameras if camera in first]
         if views:
             cases.append(LightCase(f"light {index:02d}", views, light=rig.olat(index)))
     return cases
@@ -120,10 +125,8 @@ def row_olat_cases(
 
 def has_olat_rows(dataset_dir: Path, subject: str) -> bool:
 
-    dataset = NormalizedDataset(dataset_dir)
-    return any(p.startswith("olat-") for p in dataset.patterns) and bool(
-        [k for k in dataset.select(subjects=subject) if "/olat-" in k]
-    )
+    patterns = NormalizedTorchDataset(dataset_dir, subjects=subject).column("pattern")
+    return any(p.startswith("olat-") for p in patterns)
 
 
 def callable_olat_cases(
@@ -183,28 +186,30 @@ def answer_frame(
 ) -> AnswerFrame:
     """Tie a test subject's first full-on frame to the answers (cameras default to all of them)."""
 
-    dataset = NormalizedDataset(dataset_dir)
+    rows = NormalizedTorchDataset(dataset_dir, subjects=subject, patterns="full")
     native = answers.cameras(world_dataset)
-    rows = [dataset.row(k) for k in dataset.select(subjects=subject, patterns="full")]
-    if not rows:
-        raise InputError(f"{dataset.path}: subject {subject!r} has no full-on rows")
-    frame = min(r.frame for r in rows)
-    rows = [r for r in rows if r.frame == frame and r.camera in native]
-    if not rows:
+    if not len(rows):
+        raise InputError(f"{rows.source.path}: subject {subject!r} has no full-on rows")
+    frames, row_cameras = rows.column("frame"), rows.column("camera")
+    frame = min(frames)
+    in_frame = [
+        i for i, (f, c) in enumerate(zip(frames, row_cameras, strict=True)) if f == frame and c in native
+    ]
+    if not in_frame:
         raise InputError(
-            f"{dataset.path}: no camera of subject {subject!r} is among world dataset {world_dataset!r}'s cameras"
+            f"{rows.source.path}: no camera of subject {subject!r} is among world dataset {world_dataset!r}'s cameras"
         )
-    pairs = [(native[r.camera].w2c, r.w2c) for r in rows]
+    pairs = [(native[row_cameras[i]].w2c, rows.row(i).w2c) for i in in_frame]
     transform = world_to_normalized(pairs, answers.head_pose(world_dataset, subject, frame))
-    chosen = [r for r in rows if cameras is None or r.camera in cameras]
+    chosen = [item_view(rows[i]) for i in in_frame if cameras is None or row_cameras[i] in cameras]
     return AnswerFrame(
         world_dataset,
         subject,
         frame,
-        [(r.camera, np.asarray(r.K), int(r.width), int(r.height)) for r in chosen],
+        [(v.camera, v.K, int(v.width), int(v.height)) for v in chosen],
         transform,
         native,
-        {r.camera: decode_mask(r.mask) for r in chosen},
+        {v.camera: v.mask for v in chosen},
     )
 
 
@@ -352,23 +357,31 @@ def olat_sum_over_full_on(dataset_dir: Path, subject: str, cameras: list[str]) -
     frames (up to the small head motion between frames). None when no camera has all patterns.
     """
 
-    dataset = NormalizedDataset(dataset_dir)
+    rows = NormalizedTorchDataset(dataset_dir, subjects=subject)
     patterns = rig_patterns(dataset_dir)
+    row_cameras, row_patterns = rows.column("camera"), rows.column("pattern")
+
+    def pixel_sum(index: int) -> float:
+        return float(image_hwc(rows[index]).sum())
+
     ratios = []
     for camera in cameras:
-        keys = {}
+        found = {}  # pattern -> the camera's first row of it
         for pattern in ["full", *patterns.values()]:
-            found = [
-                k
-                for k in dataset.select(subjects=subject, patterns=pattern)
-                if dataset.row(k).camera == camera
-            ]
-            if not found:
+            first = next(
+                (
+                    i
+                    for i, (c, p) in enumerate(zip(row_cameras, row_patterns, strict=True))
+                    if (c, p) == (camera, pattern)
+                ),
+                None,
+            )
+            if first is None:
                 break
-            keys[pattern] = found[0]
+            found[pattern] = first
         else:
-            total = sum(float(dataset.decoded(keys[p])[1].sum()) for p in patterns.values())
-            full = float(dataset.decoded(keys["full"])[1].sum())
+            total = sum(pixel_sum(found[p]) for p in patterns.values())
+            full = pixel_sum(found["full"])
             if full > 0:
                 ratios.append(total / full)
     return float(np.mean(ratios)) if ratios else None

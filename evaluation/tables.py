@@ -43,6 +43,7 @@ from relightanyone.evaluation.single_stage import SingleStageFitter, load_single
 from relightanyone.evaluation.truth import WorldAnswers
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import make_mesh_key
+from relightanyone.format.torch_dataset import NormalizedTorchDataset, image_hwc
 from relightanyone.model.fit.avatar import check_pinhole_cameras, decoded_avatar, relight_views
 from relightanyone.model.fit.fitter import FitSettings, Fitter, load_relightable_model
 from relightanyone.model.fit.views import load_fit_views
@@ -113,19 +114,26 @@ def evenly_spread(count: int, limit: int | None) -> list[int]:
 def subject_cameras(dataset_dir: Path, subject: str, limit: int | None) -> tuple[list[str], str]:
     """(cameras of the first full-on frame, evenly limited; the most frontal of them: centre nearest +z)."""
 
-    dataset = NormalizedDataset(dataset_dir)
-    rows = [dataset.row(k) for k in dataset.select(subjects=subject, patterns="full")]
-    if not rows:
-        raise InputError(f"{dataset.path}: subject {subject!r} has no full-on rows to fit")
-    frame = min(r.frame for r in rows)
-    rows = sorted((r for r in rows if r.frame == frame), key=lambda r: r.camera)
-    rows = [rows[i] for i in evenly_spread(len(rows), limit)]
+    rows = NormalizedTorchDataset(dataset_dir, subjects=subject, patterns="full")
+    if not len(rows):
+        raise InputError(f"{rows.source.path}: subject {subject!r} has no full-on rows to fit")
+    by_camera = sorted(first_frame_rows(rows).items(), key=lambda entry: entry[1])
+    chosen = [rows.row(by_camera[i][0]) for i in evenly_spread(len(by_camera), limit)]
 
     def frontality(row) -> float:
         centre = -row.w2c[:3, :3].T @ row.w2c[:3, 3]
         return float(centre[2] / max(np.linalg.norm(centre), 1e-9))
 
-    return [r.camera for r in rows], max(rows, key=frontality).camera
+    return [r.camera for r in chosen], max(chosen, key=frontality).camera
+
+
+def first_frame_rows(rows: NormalizedTorchDataset) -> dict[int, str]:
+    """Item index -> camera of the rows of the first frame in ``rows`` (from the index, nothing decoded)."""
+    frames, cameras = rows.column("frame"), rows.column("camera")
+    first = min(frames)
+    return {
+        i: camera for i, (frame, camera) in enumerate(zip(frames, cameras, strict=True)) if frame == first
+    }
 
 
 def test_subjects(inputs: EvaluationInputs, world_name: str, limit: int | None) -> list[str]:
@@ -135,7 +143,7 @@ def test_subjects(inputs: EvaluationInputs, world_name: str, limit: int | None) 
     if inputs.answers is not None and world_name in inputs.answers.splits:
         names = [s for s in inputs.answers.test_subjects(world_name) if s in dataset.subjects]
     else:
-        names = sorted({dataset.row(k).subject for k in dataset.select(splits="test")})
+        names = sorted(set(NormalizedTorchDataset(dataset, splits="test").column("subject")))
     return names if limit is None else names[:limit]
 
 
@@ -296,10 +304,8 @@ class Evaluation:
 
     def _row_views(self, world_name: str, subject: str, cameras: list[str]) -> list[EvalView]:
 
-        dataset = NormalizedDataset(self.inputs.datasets[world_name])
-        rows = [dataset.row(k) for k in dataset.select(subjects=subject, patterns="full")]
-        frame = min(r.frame for r in rows)
-        by_camera = {r.camera: r for r in rows if r.frame == frame}
+        rows = NormalizedTorchDataset(self.inputs.datasets[world_name], subjects=subject, patterns="full")
+        by_camera = {camera: rows.row(i) for i, camera in first_frame_rows(rows).items()}
         return [
             EvalView(c, by_camera[c].K, by_camera[c].w2c, by_camera[c].width, by_camera[c].height, None, None)
             for c in cameras
@@ -419,7 +425,9 @@ class Evaluation:
             for subject in known[: self.settings.subjects_per_dataset]:
                 cameras, _ = subject_cameras(path, subject, self.settings.max_views)
                 index = stage1_subjects.index(f"{dataset.name}/{subject}")
-                frame = min(dataset.row(k).frame for k in dataset.select(subjects=subject, patterns="full"))
+                frame = min(
+                    NormalizedTorchDataset(dataset, subjects=subject, patterns="full").column("frame")
+                )
                 tracked = dataset.meshes().get(make_mesh_key(subject, frame))
                 tracked = (
                     None if tracked is None else torch.as_tensor(np.asarray(tracked), dtype=torch.float32)
@@ -463,9 +471,7 @@ class Evaluation:
     def _first_image(self, path: Path, subject: str) -> np.ndarray:
         """(H, W, 3) the subject's first full-on row (the input column of the image grids)."""
 
-        dataset = NormalizedDataset(path)
-        _, image, _ = dataset.decoded(sorted(dataset.select(subjects=subject, patterns="full"))[0])
-        return image
+        return image_hwc(NormalizedTorchDataset(path, subjects=subject, patterns="full")[0])
 
     def _stage1_subjects(self) -> list[str]:
         """``dataset/subject`` of every stage-1 identity code, in code order."""

@@ -98,8 +98,7 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         executor,
         dry_run,
     ):
-        from relightanyone.ingest.executors import warm_local_pool
-        from relightanyone.ingest.runner import found_lines, ingest_dataset, prepare
+        from relightanyone.ingest.runner import found_lines, ingest_dataset, ingest_executor, prepare
 
         adapter = load_adapter(command_name)
         held_out = set(test_subjects or ()) | set(published_test_subjects(splits_file) if splits_file else ())
@@ -113,10 +112,10 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
             sequence=sequence,
         )
         adapter.detect(src)
-        if executor == "local" and not dry_run:
+        if not dry_run:
             # After the cheap layout check (a wrong SRC fails at once, with no pool to wait for), so the
             # workers' imports overlap the planning.
-            warm_local_pool(workers)
+            ingest_executor(workers, executor).warm()
         plan = adapter.plan(src, options)
         prepared = prepare(plan, tracking, preset, template, workers=workers, executor=executor)
         for line in found_lines(plan, prepared[0], prepared[2]):

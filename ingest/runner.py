@@ -11,8 +11,10 @@ alpha map where the dataset has one -> 7. encode (the format's default encoding)
 
 The coordinator (:func:`ingest_dataset`) relates every frame to the tracking export first (cheap: one
 mesh per frame, and it reports camera disagreement before anything is written), writes the lights, the
-template and the refusals, runs the tasks on an executor (:mod:`.executors`), skipping tasks a killed run
-already finished, and commits. The same plan gives byte-identical datasets on any executor.
+template and the refusals, runs the tasks on an executor (:mod:`relightanyone.parallel`), skipping tasks
+a killed run already finished, and commits. The same plan gives byte-identical datasets on any executor:
+every task writes its own part and returns a small :class:`.subject_task.TaskResult`, so the coordinator
+never holds pixels, and the commit sorts rows by key.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from relightanyone.align.geometry import (
     decompose_similarity,
@@ -46,9 +49,8 @@ from relightanyone.format.schema import (
     fingerprint_config,
 )
 from relightanyone.format.shards import ShardWriter
-from relightanyone.ingest.executors import map_items, run_tasks
 from relightanyone.ingest.records import DatasetPlan, SubjectPlan
-from relightanyone.ingest.subject_task import IngestSettings, SubjectTask, decoder_share
+from relightanyone.ingest.subject_task import IngestSettings, SubjectTask, run_subject_task
 from relightanyone.ingest.tracking import (
     TRANSFORMS_NAME,
     AlignmentError,
@@ -58,6 +60,7 @@ from relightanyone.ingest.tracking import (
     load_template,
     shipped_tracking,
 )
+from relightanyone.parallel import Executor
 
 # Square crop side per preset (docs/ingest.md: tiny/demo 128², small 512², paper 1024²).
 PRESET_SIZES = {"tiny": 128, "demo": 128, "small": 512, "paper": 1024}
@@ -67,6 +70,28 @@ BYTES_PER_PIXEL = {"raw-f16": 2.02, "png16": 1.98, "exr-half": 1.38}
 TRACKER_NAME = "VHAP export"
 SHIPPED_TRACKER_NAME = "meshes shipped with the capture"
 _TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+# What the local pool's server imports once, so each forked worker starts with them loaded.
+WORKER_PRELOAD = (
+    "relightanyone.ingest.runner",  # the alignment's task function lives here
+    "relightanyone.ingest.subject_task",
+    "relightanyone.ingest.decode",
+    "relightanyone.ingest.steps",
+    "relightanyone.ingest.tracking",
+    "relightanyone.align.colour",
+    "relightanyone.align.geometry",
+    "relightanyone.format.codecs",
+    "relightanyone.format.shards",
+    "cv2",
+    "trimesh",
+    "torch",  # calibration readers return tensors; importing it in every worker costs seconds
+    "relightanyone.ingest.calibration",  # the tracker's cameras (imports kornia: 0.3 s per worker)
+)
+
+
+def ingest_executor(workers: int = 1, executor: str = "local") -> Executor:
+    """The executor of an ingest's tasks: ``executor`` "local" (this process, or a kept pool of ``workers``
+    processes) or "ray", with the ingest's modules preloaded in the pool's workers."""
+    return Executor(executor, workers, preload=WORKER_PRELOAD)
 
 
 @dataclass
@@ -160,7 +185,7 @@ def plan_tasks(
         else:
             tracking = shipped_tracking(Path(plan.source_root), subject.meshes, plan.mesh_units_to_m)
         items.append((subject.subject, native_cameras_by_frame(subject), tracking))
-    aligned = map_items(partial(_align_subject_item, template=template), items, workers, executor)
+    aligned = ingest_executor(workers, executor).map(partial(_align_subject_item, template=template), items)
     tasks = [
         SubjectTask(task_name(subject.subject), subject, alignments, failures)
         for subject, (alignments, failures) in zip(subjects, aligned, strict=True)
@@ -320,7 +345,7 @@ def prepare(
         out_size=PRESET_SIZES[preset],
         margin=CROP_MARGIN,
         encoding=encoding or DEFAULT_IMAGE_ENCODING,
-        video_threads=decoder_share(workers, executor),
+        video_threads=ingest_executor(workers, executor).cpu_share(),
     )
     tasks = plan_tasks(plan, Path(tracking_dir) if tracking_dir else None, loaded, workers, executor)
     return settings, loaded, tasks
@@ -354,6 +379,32 @@ def found_lines(plan: DatasetPlan, settings: IngestSettings, tasks: list[Subject
         f"about {estimate_bytes(plan.view_count, settings.out_size, settings.encoding) / 1e6:.1f} MB"
     )
     return lines
+
+
+def run_tasks(
+    writer: ShardWriter,
+    settings: IngestSettings,
+    tasks: list[SubjectTask],
+    executor: Executor,
+    progress: bool,
+) -> list:
+    """``run_subject_task(writer, settings, task)`` for every task on ``executor``; the results in task
+    order. The progress bar counts views of finished subjects; the longest subjects start first."""
+    bar = tqdm(
+        total=sum(len(t.plan.views) for t in tasks),
+        desc=f"ingest {settings.dataset}",
+        unit="view",
+        disable=not progress,
+    )
+    try:
+        return executor.map(
+            partial(run_subject_task, writer, settings),
+            tasks,
+            on_done=lambda task: bar.update(len(task.plan.views)),
+            cost=lambda task: len(task.plan.views),
+        )
+    finally:
+        bar.close()
 
 
 def ingest_dataset(
@@ -424,7 +475,7 @@ def ingest_dataset(
     )
 
     pending = [t for t in tasks if not writer.has_part(t.task)]
-    results = run_tasks(writer, settings, pending, workers=workers, executor=executor, progress=progress)
+    results = run_tasks(writer, settings, pending, ingest_executor(workers, executor), progress)
     manifest = writer.commit(progress=progress)
 
     reasons: dict[str, int] = {}

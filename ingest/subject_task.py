@@ -1,10 +1,10 @@
 """One ingest task: a subject's views decoded, calibrated, put in canonical space, cropped, masked and
 encoded into its own part of the :class:`~relightanyone.format.shards.ShardWriter`.
 
-The task function :func:`run_subject_task` is what every executor runs (:mod:`.executors`); it holds one
-subject at a time and returns a few counters. Steps, in order: decode (:mod:`.decode`) -> colour
-calibration -> canonical camera -> undistort + crop around the tracked mesh + resize -> mesh-silhouette
-mask (times the alpha map) -> encode -> rows.
+The task function :func:`run_subject_task` is what every executor runs (:mod:`relightanyone.parallel`,
+from :func:`.runner.run_tasks`); it holds one subject at a time and returns a few counters. Steps, in
+order: decode (:mod:`.decode`) -> colour calibration -> canonical camera -> undistort + crop around the
+tracked mesh + resize -> mesh-silhouette mask (times the alpha map) -> encode -> rows.
 """
 
 from __future__ import annotations
@@ -51,17 +51,6 @@ class IngestSettings:
     margin: float
     encoding: str
     video_threads: int = 1  # FFmpeg threads per task; not part of the dataset's fingerprint
-
-
-def decoder_share(workers: int, executor: str = "local") -> int:
-    """Video-decoder threads for each of ``workers`` tasks running at once: this machine's CPUs shared
-    out (at least 1); 1 on Ray, whose tasks each hold one CPU wherever they run."""
-    import os
-
-    if executor == "ray":
-        return 1
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, cpus // max(1, workers))
 
 
 @dataclass
@@ -150,7 +139,8 @@ def normalize_view(
 
 def configure_task_threads(video_threads: int = 1) -> None:
     """One thread per task: parallelism comes from the executor, and results stay deterministic. Only
-    the video decoder gets ``video_threads``, the worker's share of the CPUs (:func:`decoder_share`)."""
+    the video decoder gets ``video_threads``, the worker's share of the CPUs
+    (:func:`relightanyone.parallel.cpu_share`)."""
     import cv2
 
     cv2.setNumThreads(1)

@@ -13,10 +13,11 @@ from typing import Any
 
 import click
 
+from relightanyone.parallel import EXECUTORS
+
 # The size presets of ingest (crop size) and of the model (network size and schedule).
 PRESET_NAMES = ("tiny", "demo", "small", "paper")
 # Where the tasks of ingest and expand run: a local process pool, or a Ray cluster.
-EXECUTOR_NAMES = ("local", "ray")
 
 EXISTING_FOLDER = click.Path(exists=True, file_okay=False, path_type=Path)
 EXISTING_FILE = click.Path(exists=True, dir_okay=False, path_type=Path)
@@ -104,7 +105,7 @@ def workers_option(help: str | None = None) -> Decorator:
 def executor_option() -> Decorator:
     return click.option(
         "--executor",
-        type=click.Choice(EXECUTOR_NAMES),
+        type=click.Choice(EXECUTORS),
         default="local",
         show_default=True,
         help="Task executor: a local process pool, or Ray (pip install 'relightanyone[ray]').",

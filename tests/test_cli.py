@@ -12,7 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from relightanyone.cli import COMMAND_ORDER, RelightAnyoneGroup, cli, failure_line
-from relightanyone.cli_options import EXECUTOR_NAMES, PRESET_NAMES
+from relightanyone.cli_options import PRESET_NAMES
 
 
 def _bad_inputs(tmp: Path) -> list[tuple[list[str], str]]:
@@ -81,13 +81,10 @@ def test_help_lists_the_commands_in_data_flow_order_without_heavy_imports():
 
 
 def test_shared_option_choices_match_the_layers():
-    from relightanyone.ingest.executors import EXECUTORS as INGEST_EXECUTORS
     from relightanyone.ingest.runner import PRESET_SIZES
     from relightanyone.model.networks.presets import PRESETS, STAGE2_PRESETS
-    from relightanyone.pipelines.expand.executors import EXECUTORS as EXPAND_EXECUTORS
 
     assert set(PRESET_NAMES) == set(PRESET_SIZES) == set(PRESETS) == set(STAGE2_PRESETS)
-    assert set(EXECUTOR_NAMES) == set(INGEST_EXECUTORS) == set(EXPAND_EXECUTORS)
 
 
 @pytest.mark.parametrize("command", ["ingest custom", "expand", "export-dataset"])

@@ -282,15 +282,3 @@ def test_single_threaded_decoders_give_the_same_pixels(tmp_path):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="threads"):
         set_decoder_threads(avif=-1, video=1)
-
-
-def test_each_worker_decodes_video_with_its_share_of_the_cpus():
-    import os
-
-    from relightanyone.ingest.subject_task import decoder_share
-
-    cpus = len(os.sched_getaffinity(0))
-    assert decoder_share(1) == cpus
-    assert decoder_share(cpus) == 1
-    assert decoder_share(4 * cpus) == 1
-    assert decoder_share(1, "ray") == 1

@@ -53,6 +53,7 @@ def test_ray_executor_gives_the_same_bytes(capture, reference, tmp_path):
     ray = pytest.importorskip("ray", reason="the ray extra is not installed")
     try:
         summary = ingest(capture, tmp_path / "out", workers=2, executor="ray")
+        assert ray.cluster_resources()["CPU"] == 2  # no cluster address: a local Ray of ``workers`` CPUs
     finally:
         ray.shutdown()
     assert dataset_bytes(summary.path) == reference

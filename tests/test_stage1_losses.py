@@ -30,6 +30,7 @@ from relightanyone.model.train.sampling import (
     crop_intrinsics,
     held_out_cameras,
     iteration_generator,
+    random_crop,
 )
 
 
@@ -143,6 +144,18 @@ def test_crops_keep_projection_consistent_and_pad_small_images():
     padded_box = choose_crop(np.ones((8, 8)), 12, iteration_generator(0, 0, 1))
     padded = crop_array(np.ones((1, 8, 8), np.float32), padded_box)
     assert padded.shape == (1, 12, 12) and padded.sum() == 64
+    # A dataset item is cropped by the same draw: image, mask and the float64 K together.
+    item = {
+        "image": torch.from_numpy(image[:1].repeat(3, 0)),
+        "mask": torch.from_numpy(mask[None]),
+        "K": torch.from_numpy(K),
+        "key": "k",
+    }
+    cropped_item = random_crop(item, 16, iteration_generator(0, 3, 1))
+    assert cropped_item["key"] == "k" and cropped_item["K"].dtype == torch.float64
+    assert np.array_equal(cropped_item["image"].numpy(), crop_array(item["image"].numpy(), box))
+    assert np.array_equal(cropped_item["mask"].numpy(), crop_array(mask[None], box))
+    assert np.array_equal(cropped_item["K"].numpy(), crop_intrinsics(K, box))
 
 
 def test_held_out_cameras_are_spread_and_never_all():

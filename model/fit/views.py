@@ -1,17 +1,18 @@
-"""Views to fit a subject to: images, masks, cameras and the tracked mesh, read from a normalized dataset."""
+"""Views to fit a subject to: images, masks, cameras and the tracked mesh, read from a normalized dataset
+through its :class:`~relightanyone.format.torch_dataset.NormalizedTorchDataset`."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
 from relightanyone.errors import InputError
-from relightanyone.format.colour_alignment import read_learned_colour_matrix
-from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import make_mesh_key
+from relightanyone.format.torch_dataset import LEARNED, NormalizedTorchDataset, image_hwc
 
 
 @dataclass
@@ -59,71 +60,67 @@ def load_fit_views(
     ``frame`` defaults to the subject's first frame with ``pattern`` rows; ``cameras`` to all of them (one
     camera makes a single-image fit). ``image_scale`` resizes the images (OpenCV area filter) and K.
     """
-    import cv2
-
     if image_scale <= 0:
         raise InputError(f"image_scale must be positive, got {image_scale}")
-    dataset = NormalizedDataset(dataset_dir)
+    rows = NormalizedTorchDataset(dataset_dir, subjects=subject, patterns=pattern, colour_matrix=LEARNED)
+    dataset = rows.source
     if subject not in dataset.subjects:
         raise InputError(f"{dataset.path}: no subject {subject!r}; it has {', '.join(dataset.subjects[:12])}")
-    keys = dataset.select(subjects=subject, patterns=pattern)
-    if not keys:
+    if not len(rows):
         raise InputError(
             f"{dataset.path}: subject {subject!r} has no rows with pattern {pattern!r}; "
             f"the dataset's patterns are {', '.join(dataset.patterns[:12])}"
         )
-    if frame is None:
-        # Frames from the small index, so no image row is read before the frame is known.
-        frame_of = dict(
-            zip(
-                dataset.index.column("key").to_pylist(),
-                dataset.index.column("frame").to_pylist(),
-                strict=True,
-            )
-        )
-        frame = min(int(frame_of[k]) for k in keys)
-    rows = [dataset.row(k) for k in dataset.select(subjects=subject, patterns=pattern, frames=int(frame))]
-    frame = int(frame)
+    # Frames and cameras from the small index, so no image row is read before the views are known.
+    frames, row_cameras = rows.column("frame"), rows.column("camera")
+    frame = min(frames) if frame is None else int(frame)
+    chosen = [i for i, f in enumerate(frames) if f == frame]
     if cameras is not None:
-        by_camera = {r.camera: r for r in rows}
+        by_camera = {row_cameras[i]: i for i in chosen}
         missing = [c for c in cameras if c not in by_camera]
         if missing:
             raise InputError(
                 f"{dataset.path}: subject {subject!r} frame {frame} pattern {pattern!r} has no camera "
                 f"{missing}; it has {sorted(by_camera)}"
             )
-        rows = [by_camera[c] for c in cameras]
-    if not rows:
+        chosen = [by_camera[c] for c in cameras]
+    if not chosen:
         raise InputError(f"{dataset.path}: subject {subject!r} has no {pattern!r} rows at frame {frame}")
-    sizes = {(r.width, r.height) for r in rows}
+    items = [rows[i] for i in chosen]
+    sizes = {(item["width"], item["height"]) for item in items}
     if len(sizes) != 1:
         raise InputError(
             f"{dataset.path}: the chosen views have several image sizes {sorted(sizes)}; pick cameras of one size"
         )
-    matrix = read_learned_colour_matrix(dataset.path)
-    images, masks, Ks = [], [], []
-    for row in rows:
-        _, image, mask = dataset.decoded(row.key)
-        if matrix is not None:
-            image = image @ matrix.T.astype(np.float32)
-        if image_scale != 1.0:
-            size = (max(1, round(row.width * image_scale)), max(1, round(row.height * image_scale)))
-            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-            mask = cv2.resize(mask.astype(np.float32), size, interpolation=cv2.INTER_AREA)
-        images.append(np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32))
-        masks.append(np.asarray(mask, dtype=np.float32)[None])
-        Ks.append(scale_intrinsics(row.K, image_scale))
+    images, masks = zip(*(scaled_image_and_mask(item, image_scale) for item in items), strict=True)
     tracked = dataset.meshes().get(make_mesh_key(subject, frame))
     return FitViews(
-        images=torch.from_numpy(np.stack(images)),
-        masks=torch.from_numpy(np.stack(masks)),
-        K=torch.tensor(np.stack(Ks), dtype=torch.float32),
-        w2c=torch.tensor(np.stack([r.w2c for r in rows]), dtype=torch.float32),
+        images=torch.stack(images),
+        masks=torch.stack(masks),
+        K=torch.tensor(
+            np.stack([scale_intrinsics(item["K"].numpy(), image_scale) for item in items]),
+            dtype=torch.float32,
+        ),
+        w2c=torch.stack([item["w2c"] for item in items]).to(torch.float32),
         tracked_vertices=None if tracked is None else torch.from_numpy(np.asarray(tracked, dtype=np.float32)),
         subject=subject,
         frame=frame,
         dataset=dataset.name,
         pattern=pattern,
-        keys=[r.key for r in rows],
-        cameras=[r.camera for r in rows],
+        keys=[item["key"] for item in items],
+        cameras=[item["camera"] for item in items],
+    )
+
+
+def scaled_image_and_mask(item: dict, scale: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(image (3, h, w), mask (1, h, w)) of a dataset item resized by ``scale`` (OpenCV area filter; the
+    item's own tensors at scale 1)."""
+    if scale == 1.0:
+        return item["image"], item["mask"]
+    size = (max(1, round(item["width"] * scale)), max(1, round(item["height"] * scale)))
+    image = cv2.resize(image_hwc(item), size, interpolation=cv2.INTER_AREA)
+    mask = cv2.resize(item["mask"][0].numpy(), size, interpolation=cv2.INTER_AREA)
+    return (
+        torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32)),
+        torch.from_numpy(np.asarray(mask, dtype=np.float32)[None]),
     )

@@ -3,8 +3,10 @@
 Only full-on rows (``pattern == "full"``) of training subjects (``split == "train"``) are used. Each
 subject keeps a few cameras aside (:func:`relightanyone.model.train.sampling.held_out_cameras`) for the
 held-out PSNR/SSIM. Subjects are keyed ``<dataset>/<subject>`` (names only need to be unique within a
-dataset). Images stream from the memory-mapped shards one row at a time; nothing but the small index
-and the tracked meshes is held in memory.
+dataset). Each dataset's rows are a
+:class:`~relightanyone.format.torch_dataset.NormalizedTorchDataset`: images stream from the
+memory-mapped shards one row at a time; nothing but the small index and the tracked meshes is held in
+memory.
 
 A dataset folder carries its template mesh as ``template.obj``; all datasets trained together must
 share one template topology. A learned colour matrix (``colour_alignment.json``, written by the colour
@@ -15,21 +17,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 from relightanyone.errors import InputError
-from relightanyone.format.colour_alignment import read_learned_colour_matrix
-from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import MANIFEST_NAME, TEMPLATE_NAME, make_mesh_key
+from relightanyone.format.torch_dataset import LEARNED, NormalizedTorchDataset, collate_rows
 from relightanyone.model.train.sampling import (
     CROP_STREAM,
-    choose_crop,
-    crop_array,
-    crop_intrinsics,
     held_out_cameras,
     iteration_generator,
+    random_crop,
 )
 from relightanyone.render.mesh import load_obj
 
@@ -39,9 +39,11 @@ TRAIN_SPLIT = "train"
 
 @dataclass(frozen=True)
 class ViewRef:
-    """One image row: which dataset, its key, the identity row and the frame of its tracked mesh."""
+    """One image row: which dataset, its item there and key, the identity row and the frame of its
+    tracked mesh."""
 
     dataset_index: int
+    position: int  # item index in ``Stage1Data.rows[dataset_index]``
     key: str
     subject_index: int
     subject: str  # subject name inside its dataset
@@ -66,25 +68,28 @@ class Stage1Data:
         if not dataset_dirs:
             raise InputError("no dataset given: pass at least one normalized dataset folder with --data")
         self.dirs = [Path(d) for d in dataset_dirs]
-        self.datasets = [NormalizedDataset(d) for d in self.dirs]
-        self.names = [ds.name for ds in self.datasets]
+        colour = LEARNED if apply_learned_colour else None
+        self.rows = [
+            NormalizedTorchDataset(d, patterns=FULL_ON_PATTERN, splits=TRAIN_SPLIT, colour_matrix=colour)
+            for d in self.dirs
+        ]
+        self.names = [rows.name for rows in self.rows]
         if len(set(self.names)) != len(self.names):
             raise InputError(f"datasets must have distinct names, got {self.names}")
         self.template_path = self._check_templates()
-        self.colour_matrices = [self._learned_matrix(d) if apply_learned_colour else None for d in self.dirs]
         self.subjects: list[str] = []
         self.train_views: list[list[ViewRef]] = []
         self.held_out_views: list[list[ViewRef]] = []
         self._meshes: list[dict[str, np.ndarray]] = []
-        for index, dataset in enumerate(self.datasets):
-            train, held_out = self._split_views(index, dataset, held_out_per_subject)
+        for index, rows in enumerate(self.rows):
+            train, held_out = self._split_views(index, rows, held_out_per_subject)
             if not train:
                 raise InputError(
-                    f"{dataset.path}: no full-on training views (rows with pattern 'full' and split 'train')"
+                    f"{rows.source.path}: no full-on training views (rows with pattern 'full' and split 'train')"
                 )
             self.train_views.append(train)
             self.held_out_views.append(held_out)
-            self._meshes.append(dataset.meshes())
+            self._meshes.append(rows.source.meshes())
 
     def _check_templates(self) -> Path:
 
@@ -102,31 +107,24 @@ class Stage1Data:
             )
         return paths[0]
 
-    @staticmethod
-    def _learned_matrix(dataset_dir: Path) -> np.ndarray | None:
-
-        return read_learned_colour_matrix(dataset_dir)
-
-    def _split_views(self, dataset_index: int, dataset, held_out_per_subject: int) -> tuple[list, list]:
-        table = dataset.index
-        columns = {
-            name: table.column(name).to_pylist()
-            for name in ("key", "subject", "frame", "camera", "pattern", "split")
-        }
+    def _split_views(
+        self, dataset_index: int, rows: NormalizedTorchDataset, held_out_per_subject: int
+    ) -> tuple[list, list]:
+        columns = {name: rows.column(name) for name in ("key", "subject", "frame", "camera")}
         rows_by_subject: dict[str, list[int]] = {}
-        for position, (pattern, split) in enumerate(zip(columns["pattern"], columns["split"], strict=True)):
-            if pattern == FULL_ON_PATTERN and split == TRAIN_SPLIT:
-                rows_by_subject.setdefault(columns["subject"][position], []).append(position)
+        for position, subject in enumerate(columns["subject"]):
+            rows_by_subject.setdefault(subject, []).append(position)
         train: list[ViewRef] = []
         held_out: list[ViewRef] = []
         for subject in sorted(rows_by_subject):
             subject_index = len(self.subjects)
-            self.subjects.append(f"{dataset.name}/{subject}")
+            self.subjects.append(f"{rows.name}/{subject}")
             positions = rows_by_subject[subject]
             aside = held_out_cameras([columns["camera"][p] for p in positions], held_out_per_subject)
             for position in positions:
                 view = ViewRef(
                     dataset_index=dataset_index,
+                    position=position,
                     key=columns["key"][position],
                     subject_index=subject_index,
                     subject=subject,
@@ -165,19 +163,10 @@ class Stage1Data:
                 return meshes[key]
         return None
 
-    def load_view(self, view: ViewRef) -> dict[str, np.ndarray]:
-        """Decode one view: image (3, H, W) float32 linear (learned colour matrix applied), mask (1, H, W),
-        K (3, 3), w2c (4, 4)."""
-        row, image, mask = self.datasets[view.dataset_index].decoded(view.key)
-        matrix = self.colour_matrices[view.dataset_index]
-        if matrix is not None:
-            image = image @ matrix.T.astype(np.float32)
-        return {
-            "image": np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32),
-            "mask": mask[None].astype(np.float32),
-            "K": row.K,
-            "w2c": row.w2c,
-        }
+    def load_view(self, view: ViewRef) -> dict[str, Any]:
+        """One view as its dataset's item: image (3, H, W) float32 linear (learned colour matrix applied),
+        mask (1, H, W), K (3, 3) and w2c (4, 4) float64, and the row's metadata."""
+        return self.rows[view.dataset_index][view.position]
 
     def load_batch(
         self, views: list[ViewRef], crop_size: int | None, seed: int, iteration: int, first_sample: int = 0
@@ -188,26 +177,24 @@ class Stage1Data:
         Returns image (B, 3, H, W), mask (B, 1, H, W), K (B, 3, 3) float32, w2c (B, 4, 4) float32,
         tracked (B, V, 3) (zeros where missing), has_mesh (B,) float, subject_index and dataset_index (B,) int64.
         """
-        samples = []
+        items = []
         for offset, view in enumerate(views):
-            sample = self.load_view(view)
+            item = self.load_view(view)
             if crop_size is not None:
                 rng = iteration_generator(seed, iteration, CROP_STREAM, first_sample + offset)
-                box = choose_crop(sample["mask"][0], crop_size, rng)
-                sample["image"] = crop_array(sample["image"], box)
-                sample["mask"] = crop_array(sample["mask"], box)
-                sample["K"] = crop_intrinsics(sample["K"], box)
-            samples.append(sample)
-        shapes = {s["image"].shape for s in samples}
+                item = random_crop(item, crop_size, rng)
+            items.append(item)
+        shapes = {tuple(item["image"].shape) for item in items}
         if len(shapes) > 1:
             raise InputError(f"views of one batch differ in size {sorted(shapes)}; train with a crop size")
+        batch = collate_rows(items)
         tracked = [self.tracked_vertices(v) for v in views]
         vertex_count = next((t.shape[0] for t in tracked if t is not None), 0)
         return {
-            "image": torch.from_numpy(np.stack([s["image"] for s in samples])),
-            "mask": torch.from_numpy(np.stack([s["mask"] for s in samples])),
-            "K": torch.tensor(np.stack([s["K"] for s in samples]), dtype=torch.float32),
-            "w2c": torch.tensor(np.stack([s["w2c"] for s in samples]), dtype=torch.float32),
+            "image": batch["image"],
+            "mask": batch["mask"],
+            "K": batch["K"].to(torch.float32),
+            "w2c": batch["w2c"].to(torch.float32),
             "tracked": torch.from_numpy(
                 np.stack([t if t is not None else np.zeros((vertex_count, 3), np.float32) for t in tracked])
             ),

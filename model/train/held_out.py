@@ -28,22 +28,18 @@ def render_view(
 
     ``dataset_colour`` maps the render through the dataset's learned warm-up matrix (uncalibrated only).
     """
-    sample = data.load_view(view)
-    _, height, width = sample["image"].shape
+    item = data.load_view(view)
+    _, height, width = item["image"].shape
     device = model.identity_codes.device
     subject = torch.tensor([view.subject_index], device=device)
     dataset = torch.tensor([view.dataset_index], device=device)
     _, gaussians = model(subject, dataset, use_lighting=use_lighting)
-    K = torch.tensor(sample["K"], dtype=torch.float32, device=device)[None]
-    w2c = torch.tensor(sample["w2c"], dtype=torch.float32, device=device)[None]
+    K = item["K"].to(device=device, dtype=torch.float32)[None]
+    w2c = item["w2c"].to(device=device, dtype=torch.float32)[None]
     render, _ = render_gaussians(gaussians, K, w2c, width, height)
     if dataset_colour:
         render = model.dataset_colour(render, dataset)
-    return {
-        "render": render.cpu(),
-        "image": torch.from_numpy(sample["image"])[None],
-        "mask": torch.from_numpy(sample["mask"])[None],
-    }
+    return {"render": render.cpu(), "image": item["image"][None], "mask": item["mask"][None]}
 
 
 def evaluate_held_out(

@@ -1,4 +1,4 @@
-"""Deterministic batch sampling and crops for stage-1 training.
+"""Deterministic batch sampling and crops for stage-1 and stage-2 training.
 
 Every random choice of iteration ``t`` is drawn from a generator seeded with ``(seed, t, ...)``. The
 sampler therefore has no hidden state: its position is the iteration number, so resumed runs draw
@@ -13,8 +13,10 @@ small dataset is seen as often as a large one.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+import torch
 
 from relightanyone.errors import InputError
 
@@ -105,6 +107,19 @@ def crop_intrinsics(K: np.ndarray, box: CropBox) -> np.ndarray:
     cropped[0, 2] -= box.x0
     cropped[1, 2] -= box.y0
     return cropped
+
+
+def random_crop(item: dict[str, Any], size: int, rng: np.random.Generator) -> dict[str, Any]:
+    """A dataset item (:class:`~relightanyone.format.torch_dataset.NormalizedTorchDataset`) cropped to the
+    window :func:`choose_crop` draws from its mask: image (3, size, size), mask (1, size, size) and K
+    (float64) of the crop; the other fields as they are."""
+    box = choose_crop(item["mask"][0].numpy(), size, rng)
+    return {
+        **item,
+        "image": torch.from_numpy(crop_array(item["image"].numpy(), box)),
+        "mask": torch.from_numpy(crop_array(item["mask"].numpy(), box)),
+        "K": torch.from_numpy(crop_intrinsics(item["K"].numpy(), box)),
+    }
 
 
 def held_out_cameras(cameras: list[str], count: int) -> set[str]:

@@ -34,9 +34,9 @@ import numpy as np
 import torch
 
 from relightanyone.errors import InputError
-from relightanyone.format.colour_alignment import read_learned_colour_matrix
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import LIGHTS_NAME, TEMPLATE_NAME, make_mesh_key
+from relightanyone.format.torch_dataset import LEARNED, NormalizedTorchDataset, collate_rows, image_hwc
 from relightanyone.model.networks.gaussians import TexelBinding
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
 from relightanyone.model.networks.reflectance import (
@@ -75,10 +75,8 @@ from relightanyone.model.train.run_files import CHECKPOINT_NAME, METRICS_NAME, R
 from relightanyone.model.train.sampling import (
     CROP_STREAM,
     background_colours,
-    choose_crop,
-    crop_array,
-    crop_intrinsics,
     iteration_generator,
+    random_crop,
 )
 from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
 from relightanyone.render.mesh import load_obj
@@ -113,8 +111,10 @@ class Stage2Config:
 
 @dataclass(frozen=True)
 class OlatView:
-    """One training image row: its key, identity row, subject name, frame and the rig lights that are on."""
+    """One training image row: its item in ``OlatFrames.rows`` and key, identity row, subject name, frame
+    and the rig lights that are on."""
 
+    position: int
     key: str
     subject_index: int
     subject: str
@@ -127,7 +127,9 @@ class OlatFrames:
     """Full-on and OLAT training rows of one normalized OLAT dataset, with its rig.
 
     Args:
-        dataset_dir: the dataset folder.
+        dataset_dir: the dataset folder; its rows are read through ``rows``, a
+            :class:`~relightanyone.format.torch_dataset.NormalizedTorchDataset` of the training split's
+            full-on and OLAT rows with the learned colour matrix applied.
         subject_names: identity rows as ``<dataset>/<subject>``; None makes one per training subject.
     """
 
@@ -146,12 +148,8 @@ class OlatFrames:
         self.full_on_rig = full_on_rig_from_table(columns, self.rig, source=str(self.path / LIGHTS_NAME))
         index = columns.get("index", list(range(len(rows))))
         light_patterns = {p: int(i) for p, i in zip(columns.get("pattern", []), index, strict=False) if p}
-        self.colour_matrix = read_learned_colour_matrix(self.path)
         self.meshes = self.dataset.meshes()
-        table = self.dataset.index
-        cols = {n: table.column(n).to_pylist() for n in ("key", "subject", "frame", "pattern", "split")}
-        train = [i for i, split in enumerate(cols["split"]) if split == TRAIN_SPLIT]
-        subjects = sorted({cols["subject"][i] for i in train})
+        subjects = sorted(set(NormalizedTorchDataset(self.dataset, splits=TRAIN_SPLIT).column("subject")))
         if subject_names is None:
             subject_names = [f"{self.name}/{s}" for s in subjects]
         missing = [s for s in subjects if f"{self.name}/{s}" not in subject_names]
@@ -161,14 +159,17 @@ class OlatFrames:
                 "train stage 1 with this dataset first"
             )
         self.subjects = list(subject_names)
+        patterns = [p for p in self.dataset.patterns if p == FULL_ON_PATTERN or p.startswith(OLAT_PREFIX)]
+        self.rows = NormalizedTorchDataset(
+            self.dataset, splits=TRAIN_SPLIT, patterns=patterns, colour_matrix=LEARNED
+        )
+        cols = {n: self.rows.column(n) for n in ("key", "subject", "frame", "pattern")}
         self.full_on: list[OlatView] = []
         self.olat: list[OlatView] = []
-        for i in train:
-            pattern = cols["pattern"][i]
-            if pattern != FULL_ON_PATTERN and not pattern.startswith(OLAT_PREFIX):
-                continue
+        for i, pattern in enumerate(cols["pattern"]):
             lights = pattern_light_indices(pattern, light_patterns, len(self.rig), str(self.path))
             view = OlatView(
+                i,
                 cols["key"][i],
                 self.subjects.index(f"{self.name}/{cols['subject'][i]}"),
                 cols["subject"][i],
@@ -204,19 +205,13 @@ class OlatFrames:
     ) -> dict[str, torch.Tensor]:
         """image (B, 3, c, c), mask (B, 1, c, c), K (B, 3, 3), w2c (B, 4, 4), light_positions and
         light_intensities (B, Lmax, 3), tracked (B, V, 3), has_mesh (B,), subject_index (B,)."""
-        images, masks, Ks, w2cs = [], [], [], []
-        for sample, view in enumerate(views):
-            row, image, mask = self.dataset.decoded(view.key)
-            if self.colour_matrix is not None:
-                image = image @ self.colour_matrix.T.astype(np.float32)
-            image = np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32)
-            box = choose_crop(
-                mask.astype(np.float32), crop_size, iteration_generator(seed, iteration, CROP_STREAM, sample)
+        items = [
+            random_crop(
+                self.rows[view.position], crop_size, iteration_generator(seed, iteration, CROP_STREAM, i)
             )
-            images.append(crop_array(image, box))
-            masks.append(crop_array(mask[None].astype(np.float32), box))
-            Ks.append(crop_intrinsics(row.K, box))
-            w2cs.append(row.w2c)
+            for i, view in enumerate(views)
+        ]
+        batch = collate_rows(items)
         light_positions, light_intensities = batch_lights(self.rig, [list(v.lights) for v in views])
         for sample, view in enumerate(views):
             if view.full_on:  # the full-on pattern's own intensities (shorter exposures per light)
@@ -226,10 +221,10 @@ class OlatFrames:
         tracked = [self.tracked_vertices(v) for v in views]
         vertex_count = next((t.shape[0] for t in tracked if t is not None), 0)
         return {
-            "image": torch.from_numpy(np.stack(images)),
-            "mask": torch.from_numpy(np.stack(masks)),
-            "K": torch.tensor(np.stack(Ks), dtype=torch.float32),
-            "w2c": torch.tensor(np.stack(w2cs), dtype=torch.float32),
+            "image": batch["image"],
+            "mask": batch["mask"],
+            "K": batch["K"].to(torch.float32),
+            "w2c": batch["w2c"].to(torch.float32),
             "light_positions": light_positions,
             "light_intensities": light_intensities,
             "tracked": torch.from_numpy(
@@ -343,9 +338,8 @@ class Stage2Trainer:
         chosen = (self.frames.full_on or self.frames.olat)[:views]
         totals, count = np.zeros(3), 0.0
         for view in chosen:
-            _, image, mask = self.frames.dataset.decoded(view.key)
-            if self.frames.colour_matrix is not None:
-                image = image @ self.frames.colour_matrix.T.astype(np.float32)
+            item = self.frames.rows[view.position]
+            image, mask = image_hwc(item), item["mask"][0].numpy()
             totals += image[mask > 0].sum(axis=0)
             count += float((mask > 0).sum())
         mean_colour = torch.tensor(totals / max(count, 1.0), dtype=torch.float32, device=self.device)

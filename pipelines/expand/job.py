@@ -8,9 +8,10 @@ camera of that frame render ``olat-KKK`` for each rig light, ``full`` (the whole
 intensities) and ``env-<name>`` per environment map. Rows keep the source row's K, w2c, size, mask, crop
 and split; ``source`` is the source row key and ``source_sha256`` the sha256 of its encoded image.
 
-Each task writes one :class:`~relightanyone.format.shards.ShardWriter` part, so a finished subject is
-skipped on a re-run and a killed run resumes without duplicates; the commit sorts rows by key, so the bytes
-do not depend on the executor or the worker count (tasks run with fixed torch threads and seeds).
+Each task writes one :class:`~relightanyone.format.shards.ShardWriter` part and returns a small report, so
+the coordinator never holds pixels, a finished subject is skipped on a re-run and a killed run resumes
+without duplicates; the commit sorts rows by key, so the bytes do not depend on the executor
+(:mod:`relightanyone.parallel`) or the worker count (tasks run with fixed torch threads and seeds).
 """
 
 from __future__ import annotations
@@ -20,7 +21,10 @@ import re
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
+
+from tqdm import tqdm
 
 from relightanyone.errors import InputError
 from relightanyone.format.arrow_io import sha256_file
@@ -36,7 +40,7 @@ from relightanyone.format.schema import (
 from relightanyone.format.shards import ShardWriter
 from relightanyone.model.device import resolve_device
 from relightanyone.model.fit.fitter import FitSettings
-from relightanyone.pipelines.expand.executors import run_expand_tasks
+from relightanyone.parallel import Executor, TaskResources
 from relightanyone.pipelines.expand.inputs import (
     checkpoint_sha256,
     dataset_provenance,
@@ -45,8 +49,18 @@ from relightanyone.pipelines.expand.inputs import (
     stage2_olat_dataset,
 )
 from relightanyone.pipelines.expand.render import envmap_pattern
+from relightanyone.pipelines.expand.task import run_expand_task
 
 TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+# What the local pool's server imports once, so each forked worker starts with them loaded.
+WORKER_PRELOAD = (
+    "torch",
+    "relightanyone.pipelines.expand.task",
+    "relightanyone.pipelines.expand.render",
+    "relightanyone.pipelines.expand.avatar",
+    "relightanyone.model.fit.fitter",
+    "relightanyone.format.shards",
+)
 
 
 @dataclass(frozen=True)
@@ -303,8 +317,9 @@ def expand_dataset(
     writer = ShardWriter(output, plan.info)
     writer.begin()
     pending = [t for t in plan.tasks if not writer.has_part(t.name)]
-    images_per_view = len(plan.patterns)
-    results = run_expand_tasks(writer, plan.settings, pending, images_per_view, workers, executor, progress)
+    results = run_expand_tasks(
+        writer, plan.settings, pending, len(plan.patterns), workers, executor, progress
+    )
     writer.write_lights([_light_row(row) for row in plan.light_rows])
     manifest: Manifest = writer.commit(progress=progress)
     return {
@@ -315,6 +330,39 @@ def expand_dataset(
         "tasks": results,
         "seconds": time.perf_counter() - start,
     }
+
+
+def run_expand_tasks(
+    writer: ShardWriter,
+    settings: ExpandSettings,
+    tasks: list[ExpandTask],
+    images_per_view: int,
+    workers: int = 1,
+    executor: str = "local",
+    progress: bool = True,
+) -> list[dict]:
+    """:func:`~relightanyone.pipelines.expand.task.run_expand_task` for every task; reports in task order.
+
+    ``executor`` "local" runs in this process (one worker or one task; the progress bar counts relit
+    images per camera) or in the kept process pool of ``workers`` processes; "ray" runs Ray tasks that
+    each hold a CPU, and a GPU when rendering on CUDA. Elsewhere than in this process the bar counts the
+    images of finished subjects. Subjects that need a fit take longest, so they start first.
+    """
+    runner = Executor(executor, workers, preload=WORKER_PRELOAD)
+    total = sum(len(t.source_keys) for t in tasks) * images_per_view
+    bar = tqdm(total=total, desc=f"expand {settings.output.name}", unit="image", disable=not progress)
+    try:
+        if runner.in_process(len(tasks)):
+            return runner.map(partial(run_expand_task, writer, settings, on_images=bar.update), tasks)
+        return runner.map(
+            partial(run_expand_task, writer, settings),
+            tasks,
+            on_done=lambda task: bar.update(len(task.source_keys) * images_per_view),
+            cost=lambda task: (not task.known, len(task.source_keys)),
+            resources=TaskResources(cpus=1, gpus=1 if settings.device.startswith("cuda") else 0),
+        )
+    finally:
+        bar.close()
 
 
 def _light_row(row: dict) -> LightRow:

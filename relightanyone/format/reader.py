@@ -123,6 +123,13 @@ class NormalizedDataset:
         """All image keys, sorted."""
         return list(self._keys)
 
+    def position(self, key: str) -> int:
+        """The row of ``key`` in ``index``."""
+        position = self._position.get(key)
+        if position is None:
+            raise KeyError(f"{self.path}: no image row with key {key!r}")
+        return position
+
     def _distinct(self, column: str) -> list[str]:
         return sorted(set(self.index.column(column).to_pylist()))
 
@@ -141,9 +148,7 @@ class NormalizedDataset:
 
     def record_batch(self, key: str) -> pa.RecordBatch:
         """The one-row record batch of ``key`` (zero-copy where the data is not compressed)."""
-        position = self._position.get(key)
-        if position is None:
-            raise KeyError(f"{self.path}: no image row with key {key!r}")
+        position = self.position(key)
         shard, offset = int(self._shard_column[position]), int(self._offset_column[position])
         return read_batch_at(self._map(shard), offset, IMAGE_SCHEMA)
 

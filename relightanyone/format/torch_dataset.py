@@ -1,34 +1,50 @@
-"""A map-style ``torch.utils.data.Dataset`` over one normalized dataset.
+"""A map-style ``torch.utils.data.Dataset`` over one normalized dataset: the way the model reads rows.
 
-Each item is a dict::
+Stage-1 and stage-2 training, the single-stage baseline, fitting and evaluation all read their images
+through :class:`NormalizedTorchDataset`. Each item is a dict::
 
-    image          (3, H, W) float32, scene-linear, colour matrix applied when one is given
+    image          (3, H, W) float32, scene-linear, the colour matrix applied (``rgb = M @ rgb``) when given
     mask           (1, H, W) float32 in [0, 1]
-    K              (3, 3) float32
-    w2c            (4, 4) float32
-    colour_matrix  (3, 3) float32, the matrix the dataset was already normalized with
-    key, dataset, subject, camera, pattern, split: str;  frame: int
+    K              (3, 3) float64, pixels of the stored image
+    w2c            (4, 4) float64, OpenCV world-to-camera
+    colour_matrix  (3, 3) float32, the matrix the dataset was already normalized with at ingest
+    index          int, the item's position in this dataset
+    key, dataset, subject, camera, pattern, split: str;  frame, width, height: int
 
-Shard memory maps are opened lazily in each worker (the reader drops them on pickling), so it works with
-``DataLoader(num_workers > 0)``.
+``K`` and ``w2c`` stay in the stored float64, so code that crops or rescales an image shifts the camera
+before rounding it to float32 once. :func:`collate_rows` stacks items into a batch
+(``DataLoader(dataset, collate_fn=collate_rows)``).
+
+A row is fetched by key from the memory-mapped shards (O(1) in the number of rows); the selection
+(filters, keys) is made once, on the small index. Shard memory maps are opened lazily in each process
+(the reader drops them on pickling), so the dataset works with ``DataLoader(num_workers > 0)``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from relightanyone.align.colour import read_learned_colour_matrix
 from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset
+from relightanyone.format.schema import ImageRow
+
+INDEX_COLUMNS = ("key", "subject", "frame", "camera", "pattern", "split")
+LEARNED = "learned"  # colour_matrix: the dataset's learned matrix (colour_alignment.json) when it has one
 
 
 class NormalizedTorchDataset(torch.utils.data.Dataset):
-    """Rows of ``path`` filtered by subject, split, pattern or camera, in key order.
+    """Rows of ``path`` filtered by subject, frame, camera, pattern and split, in key order; or exactly
+    ``keys``, in their order.
 
-    ``colour_matrix`` (3, 3), when given, is applied on load: ``rgb = colour_matrix @ rgb`` per pixel.
+    ``colour_matrix``: None (images as stored), a (3, 3) matrix, or ``"learned"``: the dataset's learned
+    matrix (``colour_alignment.json``, written by the colour warm-up) when the folder has one. It is
+    applied on load, ``rgb = colour_matrix @ rgb`` per pixel.
     """
 
     def __init__(
@@ -38,18 +54,49 @@ class NormalizedTorchDataset(torch.utils.data.Dataset):
         patterns: list[str] | str | None = None,
         subjects: list[str] | str | None = None,
         cameras: list[str] | str | None = None,
-        colour_matrix: np.ndarray | torch.Tensor | None = None,
+        frames: list[int] | int | None = None,
+        keys: Sequence[str] | None = None,
+        colour_matrix: np.ndarray | torch.Tensor | str | None = None,
     ):
         self.source = path if isinstance(path, NormalizedDataset) else NormalizedDataset(path)
-        self.keys = self.source.select(subjects=subjects, cameras=cameras, patterns=patterns, splits=splits)
+        selected = self.source.select(
+            subjects=subjects, cameras=cameras, patterns=patterns, splits=splits, frames=frames
+        )
+        if keys is not None:
+            missing = [k for k in keys if k not in self.source]
+            if missing:
+                raise ValueError(f"{self.source.path}: no image rows {missing[:4]}")
+            chosen = set(selected)
+            selected = [k for k in keys if k in chosen]
+        self.keys = selected
+        self._positions = np.asarray([self.source.position(k) for k in selected], dtype=np.int64)
+        if isinstance(colour_matrix, str):
+            if colour_matrix != LEARNED:
+                raise ValueError(f"colour_matrix must be a (3, 3) matrix, None or {LEARNED!r}")
+            colour_matrix = read_learned_colour_matrix(self.source.path)
         if colour_matrix is not None:
-            colour_matrix = torch.as_tensor(np.asarray(colour_matrix, dtype=np.float32))
+            colour_matrix = np.asarray(colour_matrix, dtype=np.float64)
             if colour_matrix.shape != (3, 3):
                 raise ValueError(f"colour_matrix must be (3, 3), got {tuple(colour_matrix.shape)}")
         self.colour_matrix = colour_matrix
 
+    @property
+    def name(self) -> str:
+        return self.source.name
+
     def __len__(self) -> int:
         return len(self.keys)
+
+    def column(self, name: str) -> list:
+        """One index column (``key``, ``subject``, ``frame``, ``camera``, ``pattern``, ``split``) of the
+        selected rows, in item order; no shard is read."""
+        if name not in INDEX_COLUMNS:
+            raise ValueError(f"no index column {name!r}; the index has {', '.join(INDEX_COLUMNS)}")
+        return self.source.index.column(name).take(self._positions).to_pylist()
+
+    def row(self, index: int) -> ImageRow:
+        """The stored row of item ``index`` (cameras, sizes, crop; image and mask still encoded)."""
+        return self.source.row(self.keys[index])
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         row, image, mask = self.source.decoded(self.keys[index])
@@ -58,15 +105,15 @@ class NormalizedTorchDataset(torch.utils.data.Dataset):
                 f"{self.source.path}: row {row.key!r} declares {row.width}x{row.height} but decodes to "
                 f"image {image.shape[:2]} and mask {mask.shape}"
             )
-        image_tensor = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).contiguous()
         if self.colour_matrix is not None:
-            image_tensor = torch.einsum("ij,jhw->ihw", self.colour_matrix, image_tensor)
+            image = image @ self.colour_matrix.T.astype(np.float32)
         return {
-            "image": image_tensor,
+            "image": torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32)),
             "mask": torch.from_numpy(mask)[None],
-            "K": torch.from_numpy(row.K.astype(np.float32)),
-            "w2c": torch.from_numpy(row.w2c.astype(np.float32)),
+            "K": torch.from_numpy(row.K),
+            "w2c": torch.from_numpy(row.w2c),
             "colour_matrix": torch.from_numpy(row.colour_matrix.astype(np.float32)),
+            "index": int(index),
             "key": row.key,
             "dataset": row.dataset,
             "subject": row.subject,
@@ -74,4 +121,31 @@ class NormalizedTorchDataset(torch.utils.data.Dataset):
             "camera": row.camera,
             "pattern": row.pattern,
             "split": row.split,
+            "width": row.width,
+            "height": row.height,
         }
+
+
+def image_hwc(item: dict[str, Any]) -> np.ndarray:
+    """(H, W, 3) float32, C-contiguous: an item's image laid out as NumPy and OpenCV code reads it."""
+    return np.ascontiguousarray(item["image"].permute(1, 2, 0).numpy())
+
+
+def collate_rows(items: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """A batch of items: tensors stacked into ``(B, ...)``, every other field as a list of B values.
+
+    Tensors of one field must share a shape (crop first when the rows differ in size).
+    """
+    if not items:
+        raise ValueError("no items to collate")
+    batch: dict[str, Any] = {}
+    for name, first in items[0].items():
+        values = [item[name] for item in items]
+        if isinstance(first, torch.Tensor):
+            shapes = {tuple(v.shape) for v in values}
+            if len(shapes) > 1:
+                raise ValueError(f"items of one batch differ in {name} shape: {sorted(shapes)}")
+            batch[name] = torch.stack(values)
+        else:
+            batch[name] = values
+    return batch
