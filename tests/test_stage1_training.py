@@ -5,16 +5,15 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
+from helpers.kill_handshake import HANG_GUARD_SECONDS, kill_at, start_python
 from helpers.stage1_world import tiny_stage1_preset, train_script, write_dataset
 
 from relightanyone.model.cli import COMMANDS
@@ -85,26 +84,17 @@ def test_sigkill_then_resume_gives_the_uninterrupted_weights(world, tmp_path):
         [sys.executable, "-c", train_script(world, reference, **settings)],
         check=True,
         env=_env(),
-        timeout=240,
+        timeout=HANG_GUARD_SECONDS,
     )
-    process = subprocess.Popen(
-        [sys.executable, "-c", train_script(world, interrupted, **settings)], env=_env()
-    )
-    deadline = time.monotonic() + 180
+    script = train_script(world, interrupted, kill_after_checkpoint=4, **settings)
+    kill_at(start_python(script, env=_env()), "CHECKPOINT 4")
     checkpoint = interrupted / "checkpoint.pt"
-    while time.monotonic() < deadline and process.poll() is None:
-        if checkpoint.is_file() and load_checkpoint(checkpoint)["iteration"] >= 2:
-            break
-        time.sleep(0.05)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
-    killed_at = load_checkpoint(checkpoint)["iteration"]
-    assert killed_at < 10, "the run finished before it could be killed"
+    assert load_checkpoint(checkpoint)["iteration"] == 4
     subprocess.run(
         [sys.executable, "-c", train_script(world, interrupted, **settings)],
         check=True,
         env=_env(),
-        timeout=240,
+        timeout=HANG_GUARD_SECONDS,
     )
     expected = load_checkpoint(reference / "checkpoint.pt")
     resumed = load_checkpoint(checkpoint)

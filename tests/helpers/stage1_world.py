@@ -12,10 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
+from helpers.kill_handshake import IMPORT_HELPERS
 from relightanyone.format.codecs import encode_image, encode_mask
 from relightanyone.format.examples import look_at_w2c
 from relightanyone.format.schema import DatasetInfo, MeshRow, Provenance, build_image_row, fingerprint_config
 from relightanyone.format.shards import ShardWriter
+from relightanyone.model.networks.presets import get_preset
 
 RADIUS = 0.1
 
@@ -162,8 +164,6 @@ def write_dataset(
 def tiny_stage1_preset(**changes):
     """A stage-1 preset sized for tests: UV 16², 32² crops, small decoders, a learning rate that shows
     progress within a few iterations."""
-    from relightanyone.model.networks.presets import get_preset
-
     settings = dict(
         uv_size=16,
         z_id_dim=8,
@@ -186,14 +186,38 @@ def tiny_stage1_preset(**changes):
     return get_preset("tiny").replace(**settings)
 
 
-def train_script(data: list[Path], out: Path, evaluate: bool = False, **preset_changes) -> str:
-    """Python source that trains a tiny stage-1 run; for subprocesses (SIGKILL, torchrun)."""
-    return (
-        "import sys; from pathlib import Path\n"
-        f"sys.path.insert(0, {str(Path(__file__).parents[1])!r})\n"
-        "from helpers.stage1_world import tiny_stage1_preset\n"
-        "from relightanyone.model.train.stage1 import Stage1Config, train_stage1\n"
-        f"preset = tiny_stage1_preset(**{preset_changes!r})\n"
-        f"train_stage1(Stage1Config([Path(p) for p in {[str(d) for d in data]!r}], Path({str(out)!r}), preset, "
-        f"progress=False, evaluate={evaluate!r}))\n"
-    )
+def train_script(
+    data: list[Path],
+    out: Path,
+    evaluate: bool = False,
+    kill_after_checkpoint: int | None = None,
+    **preset_changes,
+) -> str:
+    """Python source that trains a tiny stage-1 run; for subprocesses (SIGKILL, torchrun).
+
+    With ``kill_after_checkpoint`` N the script prints ``CHECKPOINT N`` once the checkpoint of iteration N is
+    saved and waits there to be killed (:func:`helpers.kill_handshake.kill_at`).
+    """
+    lines = [
+        IMPORT_HELPERS,
+        "from pathlib import Path",
+        "from helpers.stage1_world import tiny_stage1_preset",
+        "from relightanyone.model.train import stage1",
+    ]
+    if kill_after_checkpoint is not None:
+        lines += [
+            "from helpers.kill_handshake import block_until_killed",
+            "save_checkpoint = stage1.save_checkpoint",
+            "def save_then_wait(path, payload):",
+            "    save_checkpoint(path, payload)",
+            f"    if payload['iteration'] == {kill_after_checkpoint}:",
+            f"        block_until_killed('CHECKPOINT {kill_after_checkpoint}')",
+            "stage1.save_checkpoint = save_then_wait",
+        ]
+    lines += [
+        f"preset = tiny_stage1_preset(**{preset_changes!r})",
+        f"data = [Path(p) for p in {[str(d) for d in data]!r}]",
+        f"config = stage1.Stage1Config(data, Path({str(out)!r}), preset, progress=False, evaluate={evaluate!r})",
+        "stage1.train_stage1(config)",
+    ]
+    return "\n".join(lines) + "\n"
