@@ -8,6 +8,8 @@ albedo times the dataset's colour cast, over a grey background the mask excludes
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +17,14 @@ import numpy as np
 from helpers.kill_handshake import IMPORT_HELPERS
 from relightanyone.format.codecs import encode_image, encode_mask
 from relightanyone.format.examples import look_at_w2c
-from relightanyone.format.schema import DatasetInfo, MeshRow, Provenance, build_image_row, fingerprint_config
+from relightanyone.format.schema import (
+    DatasetInfo,
+    ImageRow,
+    MeshRow,
+    Provenance,
+    build_image_row,
+    fingerprint_config,
+)
 from relightanyone.format.shards import ShardWriter
 from relightanyone.model.networks.presets import get_preset
 
@@ -98,6 +107,66 @@ def render_sphere(scale: float, albedo: np.ndarray, K: np.ndarray, w2c: np.ndarr
     return image, mask
 
 
+def sphere_image_row(
+    dataset: str,
+    subject: str,
+    camera: str,
+    pattern: str,
+    split: str,
+    K: np.ndarray,
+    w2c: np.ndarray,
+    image: np.ndarray,
+    mask: np.ndarray,
+    source: str,
+) -> ImageRow:
+    """The normalized row of one rendered view of frame 0: ``image`` (H, W, 3) linear float stored as
+    raw-f16, ``mask`` (H, W) bool; ``source`` is a made-up native path (its sha256 is of the path)."""
+    return build_image_row(
+        dataset=dataset,
+        subject=subject,
+        frame=0,
+        camera=camera,
+        pattern=pattern,
+        split=split,
+        K=K,
+        w2c=w2c,
+        image=encode_image(image),
+        image_encoding="raw-f16",
+        mask=encode_mask(mask),
+        width=image.shape[1],
+        height=image.shape[0],
+        source=source,
+        source_sha256=hashlib.sha256(source.encode()).hexdigest(),
+    )
+
+
+def sphere_mesh(subject: str, scale: float = 1.0) -> MeshRow:
+    """The tracked mesh of a subject's frame 0: the template sphere scaled by ``scale``."""
+    vertices, _ = sphere_obj()
+    return MeshRow(subject=subject, frame=0, vertices=(vertices * scale).astype(np.float32))
+
+
+@contextmanager
+def sphere_dataset(
+    root: Path, name: str, kind: str, lighting: str, source_dataset: str, fingerprint: dict
+) -> Iterator[ShardWriter]:
+    """Write the normalized dataset ``root/name`` of sphere subjects (template "sphere", CC0): yields its
+    begun ShardWriter; when the block ends, commits it and writes the sphere's ``template.obj`` beside it."""
+    info = DatasetInfo(
+        name=name,
+        kind=kind,
+        template_mesh_id="sphere",
+        lighting=lighting,
+        provenance=Provenance(source_dataset=source_dataset, licence="CC0"),
+        config_fingerprint=fingerprint_config(fingerprint),
+    )
+    writer = ShardWriter(root / name, info)
+    writer.begin()
+    yield writer
+    writer.commit()
+    (root / name / "template.obj").write_text(sphere_obj()[1])
+
+
 def write_dataset(
     root: Path,
     name: str,
@@ -110,55 +179,26 @@ def write_dataset(
     """Write one normalized dataset under ``root/name`` and return its folder."""
     rng = np.random.default_rng(seed)
     cast = np.eye(3) if cast is None else np.asarray(cast)
-    template_vertices, obj_text = sphere_obj()
-    dataset_dir = root / name
-    info = DatasetInfo(
-        name=name,
-        kind="flat",
-        template_mesh_id="sphere",
-        lighting="full-on",
-        provenance=Provenance(source_dataset="stage1 test sphere world", licence="CC0"),
-        config_fingerprint=fingerprint_config({"name": name, "seed": seed}),
-    )
-    writer = ShardWriter(dataset_dir, info)
-    writer.begin()
     focal = 2.2 * size
     K = np.array([[focal, 0, (size - 1) / 2], [0, focal, (size - 1) / 2], [0, 0, 1.0]])
-    for s in range(subjects):
-        subject = f"s{s:02d}"
-        scale = 1.0 + 0.1 * s
-        albedo = cast @ rng.uniform(0.3, 0.8, 3)
-        with writer.part(subject) as part:
-            part.add_mesh(
-                MeshRow(subject=subject, frame=0, vertices=(template_vertices * scale).astype(np.float32))
-            )
-            for c in range(cameras):
-                angle = 2 * np.pi * c / cameras
-                w2c = look_at_w2c(0.5 * np.array([np.sin(angle), 0.2, np.cos(angle)]))
-                image, mask = render_sphere(scale, albedo, K, w2c, size)
-                source = f"{subject}/cam{c:02d}.exr"
-                part.add(
-                    build_image_row(
-                        dataset=name,
-                        subject=subject,
-                        frame=0,
-                        camera=f"cam{c:02d}",
-                        pattern="full",
-                        split="train",
-                        K=K,
-                        w2c=w2c,
-                        image=encode_image(image),
-                        image_encoding="raw-f16",
-                        mask=encode_mask(mask),
-                        width=size,
-                        height=size,
-                        source=source,
-                        source_sha256=hashlib.sha256(source.encode()).hexdigest(),
+    fingerprint = {"name": name, "seed": seed}
+    with sphere_dataset(root, name, "flat", "full-on", "stage1 test sphere world", fingerprint) as writer:
+        for s in range(subjects):
+            subject = f"s{s:02d}"
+            scale = 1.0 + 0.1 * s
+            albedo = cast @ rng.uniform(0.3, 0.8, 3)
+            with writer.part(subject) as part:
+                part.add_mesh(sphere_mesh(subject, scale))
+                for c in range(cameras):
+                    angle = 2 * np.pi * c / cameras
+                    w2c = look_at_w2c(0.5 * np.array([np.sin(angle), 0.2, np.cos(angle)]))
+                    image, mask = render_sphere(scale, albedo, K, w2c, size)
+                    camera = f"cam{c:02d}"
+                    source = f"{subject}/{camera}.exr"
+                    part.add(
+                        sphere_image_row(name, subject, camera, "full", "train", K, w2c, image, mask, source)
                     )
-                )
-    writer.commit()
-    (dataset_dir / "template.obj").write_text(obj_text)
-    return dataset_dir
+    return root / name
 
 
 def tiny_stage1_preset(**changes):
