@@ -15,21 +15,14 @@ from helpers.raster_scenes import (
 from relightanyone.render.rasterize import rasterize
 from relightanyone.render.rasterize_cpp import tile_kernel_available
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 # --------------------------------------------------------------------------------------------------------
 # Reference checks: tiled backends against the dense every-pixel × every-Gaussian oracle.
 
 needs_kernel = pytest.mark.skipif(
     not tile_kernel_available(), reason="C++ rasterizer kernel could not be built"
 )
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny scenes: one intra-op thread avoids thread hand-offs dominating (tests run under pytest-xdist)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 SCENES = {
@@ -39,32 +32,24 @@ SCENES = {
 }
 
 
+# backend -> (dtype it renders in, tolerance against the float64 dense reference)
+BACKENDS = {"torch": (torch.float64, 1e-10), "cpp": (torch.float32, 1e-5)}
+
+
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
 @pytest.mark.parametrize("name", list(SCENES))
-def test_torch_backend_matches_dense_reference(name, mode):
+@pytest.mark.parametrize("backend", ["torch", pytest.param("cpp", marks=needs_kernel)])
+def test_tiled_backend_matches_dense_reference(backend, name, mode):
+    dtype, tol = BACKENDS[backend]
     scene = random_scene(**SCENES[name])
     background = torch.linspace(0.1, 0.4, scene["features"].shape[-1], dtype=torch.float64)
     ref_out, ref_grads = render_with_grads(scene, "dense", torch.float64, mode=mode, background=background)
-    out, grads = render_with_grads(scene, "torch", torch.float64, mode=mode, background=background)
+    out, grads = render_with_grads(scene, backend, dtype, mode=mode, background=background.to(dtype))
     assert float(ref_out[1].max()) > 0.5, "scene should cover part of the image"
     for label, a, b in zip(("features", "alpha", "depth"), out, ref_out, strict=True):
-        assert_close(a, b, 1e-10, label)
+        assert_close(a, b, tol, label)
     for key in GAUSSIAN_INPUTS:
-        assert_close(grads[key], ref_grads[key], 1e-10, f"d/d{key}")
-
-
-@needs_kernel
-@pytest.mark.parametrize("mode", ["classic", "antialiased"])
-@pytest.mark.parametrize("name", list(SCENES))
-def test_cpp_backend_matches_dense_reference(name, mode):
-    scene = random_scene(**SCENES[name])
-    background = torch.linspace(0.1, 0.4, scene["features"].shape[-1], dtype=torch.float64)
-    ref_out, ref_grads = render_with_grads(scene, "dense", torch.float64, mode=mode, background=background)
-    out, grads = render_with_grads(scene, "cpp", torch.float32, mode=mode, background=background.float())
-    for label, a, b in zip(("features", "alpha", "depth"), out, ref_out, strict=True):
-        assert_close(a, b, 1e-5, label)
-    for key in GAUSSIAN_INPUTS:
-        assert_close(grads[key], ref_grads[key], 1e-5, f"d/d{key}")
+        assert_close(grads[key], ref_grads[key], tol, f"d/d{key}")
 
 
 def test_opaque_scene_exercises_cap_and_early_stop():

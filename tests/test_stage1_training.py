@@ -22,17 +22,9 @@ from relightanyone.model.train.data import Stage1Data
 from relightanyone.model.train.held_out import evaluate_held_out
 from relightanyone.model.train.stage1 import Stage1Config, build_model, train_stage1
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 CAST = np.array([[1.3, 0.1, 0.0], [0.0, 0.9, 0.0], [0.0, 0.05, 0.6]])
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One torch thread: the suite runs two workers on two cores, and spinning OpenMP threads of
-    oversubscribed processes slow every step tenfold."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
 
 
 @pytest.fixture(scope="module")
@@ -186,37 +178,10 @@ def test_render_command_swaps_lighting_codes_without_moving_geometry(trained_run
     assert report["mean_colour_shift_norm"] > 0
     assert len(report["files"]) == 4 and all(Path(f).is_file() for f in report["files"])
     assert (tmp_path / "png" / "lighting_grid.png").is_file()
-    orbit = runner.invoke(
-        COMMANDS["render"],
-        [
-            "stage1",
-            str(out),
-            "--subject",
-            "s00",
-            "--cameras",
-            "orbit",
-            "--orbit-count",
-            "3",
-            "--out",
-            str(tmp_path / "orbit"),
-        ],
-    )
+    orbit_args = ["--cameras", "orbit", "--orbit-count", "3", "--out", str(tmp_path / "orbit")]
+    orbit = runner.invoke(COMMANDS["render"], ["stage1", str(out), "--subject", "s00", *orbit_args])
     assert orbit.exit_code != 0 and "several datasets" in orbit.output
-    orbit = runner.invoke(
-        COMMANDS["render"],
-        [
-            "stage1",
-            str(out),
-            "--subject",
-            "db/s00",
-            "--cameras",
-            "orbit",
-            "--orbit-count",
-            "3",
-            "--out",
-            str(tmp_path / "orbit"),
-        ],
-    )
+    orbit = runner.invoke(COMMANDS["render"], ["stage1", str(out), "--subject", "db/s00", *orbit_args])
     assert orbit.exit_code == 0, orbit.output
     assert len(list((tmp_path / "orbit").glob("*.png"))) == 3
 
