@@ -3,6 +3,8 @@
 Real calibration and light-rig files live in ``../shared/fixtures/real`` beside the checkout; they are
 not copied into the project. Tests that need them use the ``real_fixtures`` fixture, which skips with
 the reason when that folder is absent.
+
+Modules whose tensors are tiny run on one torch thread: ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import torch
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_REAL_FIXTURES = REPO_ROOT.parent / "shared" / "fixtures" / "real"
@@ -23,3 +26,14 @@ def real_fixtures() -> Path:
             f"real fixtures not found at {SHARED_REAL_FIXTURES} (the ../shared folder beside the checkout)"
         )
     return SHARED_REAL_FIXTURES
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """One intra-op torch thread for the module's tests, restored afterwards. Their tensors are tiny, so
+    threads only add synchronisation; and the suite runs two workers on two cores, where the spinning
+    OpenMP threads of oversubscribed processes slow every step many times over."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

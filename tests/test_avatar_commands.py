@@ -1,4 +1,4 @@
-"""The ``relight`` and ``export`` commands on an avatar fitted in the sphere world (tests/sphere_world.py)."""
+"""The ``relight`` and ``export`` commands on an avatar fitted in the sphere world (``helpers.sphere_world``)."""
 
 from __future__ import annotations
 
@@ -16,14 +16,7 @@ from relightanyone.model.fit.avatar import FittedAvatar
 from relightanyone.model.fit.fitter import FitSettings, fit_subject
 from relightanyone.render.camera import Cameras
 
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny tensors: intra-op threads only add synchronisation on a busy machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

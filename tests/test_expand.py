@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from helpers.sphere_world import LIGHTS, build_sphere_world, true_olat_image
 
 from relightanyone.format.reader import NormalizedDataset
@@ -24,17 +23,10 @@ from relightanyone.format.validate import validate_path
 from relightanyone.pipelines.expand.job import expand_dataset, plan_expansion
 from relightanyone.pipelines.expand.task import run_expand_task
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 FIT_ITERATIONS = (40, 10)
 NAME = "flat-olat"
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny tensors: intra-op threads only add synchronisation on a busy machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

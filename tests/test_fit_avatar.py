@@ -28,14 +28,7 @@ from relightanyone.model.fit.views import load_fit_views, scale_intrinsics
 from relightanyone.render.camera import Cameras
 from relightanyone.render.lights import PointLights
 
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """These tensors are tiny: intra-op threads only add synchronisation, which dominates on a busy machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -4,25 +4,22 @@ bytes of an uninterrupted run."""
 from __future__ import annotations
 
 import hashlib
-import os
-import signal
-import subprocess
-import sys
 import textwrap
 from pathlib import Path
 
 import pytest
+from helpers.kill_handshake import IMPORT_HELPERS, finish, kill_at, start_python
 
 from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
 from relightanyone.format.validate import validate_path
 
-# Writes the example dataset with small shards; in "pause-commit" mode it announces itself and sleeps
-# while writing the second row of the second shard, in "pause-task" mode while writing the second task.
-WRITER_SCRIPT = textwrap.dedent(
+# Writes the example dataset with small shards; in "pause-commit" mode it announces itself and waits to be
+# killed while writing the second row of the second shard, in "pause-task" mode while writing the second task.
+WRITER_SCRIPT = IMPORT_HELPERS + textwrap.dedent(
     """
-    import sys, time
     from pathlib import Path
-    from relightanyone.format import arrow_io, shards
+    from helpers.kill_handshake import block_until_killed
+    from relightanyone.format import arrow_io
     from relightanyone.format.examples import write_example_dataset
 
     root, mode = Path(sys.argv[1]), sys.argv[2]
@@ -33,8 +30,7 @@ WRITER_SCRIPT = textwrap.dedent(
         in_commit = self.path.name == "images-00001.arrow" and len(self.offsets) == 1
         in_task = self.path.parent.name == "s001.tmp" and len(self.offsets) == 2
         if (mode == "pause-commit" and in_commit) or (mode == "pause-task" and in_task):
-            print("PAUSED", flush=True)
-            time.sleep(120)
+            block_until_killed("PAUSED")
 
     def pausing_write(self, batch):
         pause_here(self)
@@ -52,15 +48,6 @@ WRITER_SCRIPT = textwrap.dedent(
 )
 
 
-def _run_writer(root: Path, mode: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-c", WRITER_SCRIPT, str(root), mode],
-        stdout=subprocess.PIPE,
-        text=True,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-
-
 def _digests(folder: Path) -> dict[str, str]:
     return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir())}
 
@@ -68,20 +55,13 @@ def _digests(folder: Path) -> dict[str, str]:
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory) -> dict[str, str]:
     root = tmp_path_factory.mktemp("uninterrupted")
-    process = _run_writer(root, "straight")
-    assert process.communicate(timeout=120)[0].strip().endswith("DONE")
+    finish(start_python(WRITER_SCRIPT, root, "straight"), "DONE")
     return _digests(root / "demo")
 
 
 @pytest.mark.parametrize("mode", ["pause-commit", "pause-task"])
 def test_sigkill_mid_write_then_rerun_is_byte_identical(tmp_path, uninterrupted, mode):
-    process = _run_writer(tmp_path, mode)
-    try:
-        assert process.stdout.readline().strip() == "PAUSED"
-    finally:
-        process.send_signal(signal.SIGKILL)
-        process.wait(timeout=30)
-    assert process.returncode == -signal.SIGKILL
+    kill_at(start_python(WRITER_SCRIPT, tmp_path, mode), "PAUSED")
     dataset_dir = tmp_path / "demo"
     leftovers = {p.name for p in dataset_dir.iterdir()}
     assert "manifest.json" not in leftovers
@@ -92,7 +72,6 @@ def test_sigkill_mid_write_then_rerun_is_byte_identical(tmp_path, uninterrupted,
     problems = validate_path(tmp_path)
     assert problems and "no manifest.json" in str(problems[0]) and "incomplete" in str(problems[0])
 
-    rerun = _run_writer(tmp_path, "straight")
-    assert rerun.communicate(timeout=120)[0].strip().endswith("DONE")
+    finish(start_python(WRITER_SCRIPT, tmp_path, "straight"), "DONE")
     assert _digests(dataset_dir) == uninterrupted
     assert validate_path(dataset_dir) == []

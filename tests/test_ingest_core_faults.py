@@ -1,82 +1,36 @@
 """Bad input and faults: corrupt files, unsafe zips, missing cameras and meshes, bad calibrations, the CLI.
 
-Inputs are small hand-made custom captures (a procedural template seen by four cameras, noise images),
-so nothing here needs the synthetic world's renderer.
+Inputs are small hand-made custom captures (``helpers.custom_capture``), so nothing here needs the
+synthetic world's renderer.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import zipfile
 from pathlib import Path
 
+import av
+import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from helpers.custom_capture import SIZE, dataset_bytes, ingest, make_capture
+from PIL import AvifImagePlugin, Image
 
+from relightanyone.align.colour import srgb_to_linear
+from relightanyone.cli import cli
+from relightanyone.format.overlay import HEAD_COLOUR, reprojection_overlays
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.ingest import custom
-from relightanyone.ingest.decode import DecodeError, TaskDecoder
+from relightanyone.ingest.decode import DecodeError, TaskDecoder, set_decoder_threads
 from relightanyone.ingest.records import AdapterOptions, ImageRef, LayoutError
-from relightanyone.ingest.runner import ingest_dataset
-
-CAMERA_NAMES = ("c0", "c1", "c2", "c3")
-SIZE = (96, 128)  # width, height
-
-
-def make_capture(root: Path, subjects=("s1", "s2"), frames=(0, 1)) -> Path:
-    """A custom capture in metres: template.obj + neck mask at the root, 4 cameras, noise PNG images."""
-    import cv2
-
-    from relightanyone.synth.capture import look_at_w2c
-    from relightanyone.synth.template import make_template, write_obj, write_template
-
-    template = make_template(12)
-    write_template(root, template)
-    width, height = SIZE
-    focal = 260.0
-    cameras = {}
-    for k, name in enumerate(CAMERA_NAMES):
-        angle = np.radians(-30 + 20 * k)
-        eye = np.array([np.sin(angle), 0.05, np.cos(angle)]) * 0.9
-        cameras[name] = {
-            "K": [[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]],
-            "dist": [0.01, 0.0, 0.0, 0.0, 0.0],
-            "w2c": look_at_w2c(eye, np.zeros(3)).tolist(),
-            "width": width,
-            "height": height,
-        }
-    (root / "cameras.json").write_text(json.dumps({"units": "m", "encoding": "srgb", "cameras": cameras}))
-    rng = np.random.default_rng(0)
-    for subject in subjects:
-        for frame in frames:
-            folder = root / "images" / subject / f"{frame:06d}"
-            folder.mkdir(parents=True)
-            for name in CAMERA_NAMES:
-                cv2.imwrite(
-                    str(folder / f"{name}.png"), rng.integers(0, 255, (height, width, 3), dtype=np.uint8)
-                )
-            shift = np.array([0.0, 0.002 * frame, 0.0])
-            write_obj(
-                root / "meshes" / subject / f"{frame:06d}.obj", template.vertices + shift, template.faces
-            )
-    return root
 
 
 @pytest.fixture
 def capture(tmp_path) -> Path:
     return make_capture(tmp_path / "capture")
-
-
-def ingest(capture: Path, out: Path, **kwargs):
-    plan = custom.plan(capture, AdapterOptions())
-    return ingest_dataset(
-        plan, None, out, "tiny", progress=False, template=capture / "template.obj", **kwargs
-    )
-
-
-def dataset_bytes(path: Path) -> dict[str, bytes]:
-    return {p.name: p.read_bytes() for p in sorted(path.iterdir()) if p.is_file()}
 
 
 def test_clean_capture_is_written_with_provenance(capture, tmp_path):
@@ -86,8 +40,6 @@ def test_clean_capture_is_written_with_provenance(capture, tmp_path):
     row = dataset.row(dataset.keys[0])
     assert (row.width, row.height) == (128, 128)
     assert row.source.startswith("images/") and len(row.source_sha256) == 64
-    import hashlib
-
     assert row.source_sha256 == hashlib.sha256((capture / row.source).read_bytes()).hexdigest()
     manifest = json.loads((summary.path / "manifest.json").read_text())
     template_sha = hashlib.sha256((capture / "template.obj").read_bytes()).hexdigest()
@@ -96,14 +48,10 @@ def test_clean_capture_is_written_with_provenance(capture, tmp_path):
     assert (summary.path / "template.obj").read_bytes() == (capture / "template.obj").read_bytes()
     assert len(dataset.meshes()) == 4
     # The reprojection overlay draws the mesh where the mask is (4x upscaled drawing).
-    from relightanyone.format.overlay import HEAD_COLOUR, reprojection_overlays
-
     key = "custom/s1/000001/c2/full"
     (overlay,) = reprojection_overlays(summary.path, keys=[key])
     _, _, mask = dataset.decoded(key)
     drawn = np.all(overlay == HEAD_COLOUR, axis=-1).reshape(128, 4, 128, 4).any(axis=(1, 3))
-    import cv2
-
     near_mask = cv2.dilate((mask > 0.5).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
     assert drawn.sum() > 200 and (drawn & ~near_mask).sum() == 0
 
@@ -126,8 +74,6 @@ def test_corrupt_image_missing_camera_and_bad_mesh_are_quarantined(capture, tmp_
 
 
 def test_alpha_maps_multiply_the_mesh_mask(capture, tmp_path):
-    import cv2
-
     folder = capture / "alpha" / "s1" / "000000"
     folder.mkdir(parents=True)
     cv2.imwrite(str(folder / "c1.png"), np.zeros((SIZE[1], SIZE[0]), np.uint8))
@@ -188,8 +134,6 @@ def test_corrupt_files_of_every_codec_raise_naming_the_file(tmp_path, codec):
 
 def _write_mp4(path: Path, frames: list[np.ndarray], crf: int, pix_fmt: str) -> None:
     """H.264 video of ``frames`` (each ``(H, W, 3)`` uint8 RGB) at 25 fps."""
-    import av
-
     with av.open(str(path), "w", format="mp4") as container:
         stream = container.add_stream("libx264", rate=25, options={"crf": str(crf)})
         stream.height, stream.width = frames[0].shape[:2]
@@ -210,8 +154,6 @@ def test_video_frames_are_decoded_in_one_pass_and_corrupt_videos_refused(tmp_pat
         images = [decoder.decode(ref)[0] for ref in refs]
         with pytest.raises(DecodeError, match="no frame 9"):
             decoder.decode(ImageRef("cam.mp4", "mp4-frame", frame_index=9))
-    from relightanyone.align.colour import srgb_to_linear
-
     for image, index in zip(images, (3, 1), strict=True):
         assert np.allclose(image, srgb_to_linear(np.float32(40 * index / 255)), atol=2e-3)
     (tmp_path / "bad.mp4").write_bytes(b"not a video" * 10)
@@ -220,9 +162,6 @@ def test_video_frames_are_decoded_in_one_pass_and_corrupt_videos_refused(tmp_pat
 
 
 def test_cli_dry_run_prints_findings_and_writes_nothing(capture, tmp_path):
-    from relightanyone.cli import cli
-    from relightanyone.ingest.cli import COMMANDS
-
     out = tmp_path / "out"
     args = [
         "custom",
@@ -234,11 +173,11 @@ def test_cli_dry_run_prints_findings_and_writes_nothing(capture, tmp_path):
         "--template",
         str(capture / "template.obj"),
     ]
-    result = CliRunner().invoke(COMMANDS["ingest"], [*args, "--dry-run"])
+    result = CliRunner().invoke(cli, ["ingest", *args, "--dry-run"])
     assert result.exit_code == 0, result.output
     assert "16 views" in result.output and "MB" in result.output and "dry run" in result.output
     assert not out.exists()
-    result = CliRunner().invoke(COMMANDS["ingest"], [*args, "--subjects", "s2", "--cameras", "c0,c1,c2"])
+    result = CliRunner().invoke(cli, ["ingest", *args, "--subjects", "s2", "--cameras", "c0,c1,c2"])
     assert result.exit_code == 0, result.output
     assert "6 rows written, 0 quarantined" in result.output
     missing = CliRunner().invoke(cli, ["ingest", "custom", str(tmp_path), "--out", str(out)])
@@ -253,10 +192,6 @@ def test_local_pool_gives_the_same_bytes_as_one_process(capture, tmp_path):
 
 def test_single_threaded_decoders_give_the_same_pixels(tmp_path):
     """Tasks decode AVIF and video with one thread; the pixels must not depend on the thread count."""
-    from PIL import AvifImagePlugin, Image
-
-    from relightanyone.ingest.decode import set_decoder_threads
-
     rng = np.random.default_rng(4)
     frames = [(rng.random((48, 64, 3)) * 255).astype(np.uint8) for _ in range(3)]
     Image.fromarray(frames[0]).save(tmp_path / "view.avif", quality=90)

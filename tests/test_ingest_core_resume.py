@@ -3,14 +3,33 @@ same bytes as the local executor."""
 
 from __future__ import annotations
 
-import multiprocessing
-import os
-import signal
-import time
+import textwrap
 from pathlib import Path
 
 import pytest
-from test_ingest_core_faults import dataset_bytes, ingest, make_capture
+from helpers.custom_capture import dataset_bytes, ingest, make_capture
+from helpers.kill_handshake import IMPORT_HELPERS, kill_at, start_python
+
+# Ingests a capture with one worker (the tasks run in this process, one subject after the other); once the
+# first subject's part is published it announces it and waits to be killed: before the next subject and
+# before the commit that writes the manifest.
+KILLED_INGEST_SCRIPT = IMPORT_HELPERS + textwrap.dedent(
+    """
+    from pathlib import Path
+    from helpers.custom_capture import ingest
+    from helpers.kill_handshake import block_until_killed
+    from relightanyone.ingest import runner
+
+    run_subject_task = runner.run_subject_task
+
+    def run_then_wait(writer, settings, task):
+        run_subject_task(writer, settings, task)
+        block_until_killed("PUBLISHED")
+
+    runner.run_subject_task = run_then_wait
+    ingest(Path(sys.argv[1]), Path(sys.argv[2]))
+    """
+)
 
 
 @pytest.fixture(scope="module")
@@ -23,28 +42,15 @@ def reference(capture, tmp_path_factory) -> dict[str, bytes]:
     return dataset_bytes(ingest(capture, tmp_path_factory.mktemp("reference")).path)
 
 
-def _ingest_in_child(capture: Path, out: Path) -> None:
-    ingest(capture, out)
-
-
 def test_sigkill_then_rerun_gives_the_uninterrupted_dataset(capture, reference, tmp_path):
     out = tmp_path / "out"
+    kill_at(start_python(KILLED_INGEST_SCRIPT, capture, out), "PUBLISHED")
     parts = out / "custom" / "_parts"
-    child = multiprocessing.get_context("fork").Process(target=_ingest_in_child, args=(capture, out))
-    child.start()
-    deadline = time.monotonic() + 300
-    # Kill once the first subject's part is published and before the commit writes the manifest.
-    while time.monotonic() < deadline and child.is_alive():
-        if parts.is_dir() and any(p.is_dir() and not p.name.endswith(".tmp") for p in parts.iterdir()):
-            break
-        time.sleep(0.02)
-    assert child.is_alive(), "the ingest finished before it could be killed"
-    os.kill(child.pid, signal.SIGKILL)
-    child.join()
-    assert child.exitcode == -signal.SIGKILL
+    published = [p.name for p in parts.iterdir() if p.is_dir() and not p.name.endswith(".tmp")]
+    assert len(published) == 1 and published[0] in {"s1", "s2", "s3"}, published
     assert not (out / "custom" / "manifest.json").exists()
     summary = ingest(capture, out)
-    assert summary.resumed_subjects >= 1
+    assert summary.resumed_subjects == 1
     assert dataset_bytes(summary.path) == reference
 
 

@@ -1,32 +1,44 @@
 """Ingest against the synthetic world's ground truth: geometry (1 px), masks (IoU >= 0.98), colour.
 
-One tiny world (all four datasets) is generated per module; every dataset whose adapter exists is
-ingested once and judged with ``answers/`` (which ingest itself never reads).
+One tiny world (all four datasets) is generated per module; each dataset is ingested once with the
+adapter the registry (``relightanyone.ingest.registry.ADAPTERS``) holds for it, and judged with
+``answers/`` (which ingest itself never reads). A dataset without a registered adapter fails its test.
 """
 
 from __future__ import annotations
 
-import importlib
 import json
+from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
-from relightanyone.align.geometry import transform_points
+from relightanyone.align.geometry import similarity, transform_points
+from relightanyone.format.codecs import encode_exr_half
 from relightanyone.format.reader import NormalizedDataset
+from relightanyone.ingest.decode import TaskDecoder, apply_colour_calibration
 from relightanyone.ingest.records import AdapterOptions
+from relightanyone.ingest.registry import ADAPTERS, Adapter, load_adapter
 from relightanyone.ingest.runner import ingest_dataset
-from relightanyone.ingest.steps import crop_resize_intrinsics, mesh_mask, project_points
+from relightanyone.ingest.steps import (
+    crop_resize_intrinsics,
+    mesh_mask,
+    project_points,
+    undistort_crop_resize,
+)
 from relightanyone.ingest.tracking import load_template
 from relightanyone.render.mesh import read_obj_vertices
+from relightanyone.synth.template import write_obj
 from relightanyone.synth.truth import DatasetTruth
+from relightanyone.synth.world import generate_world
 
-# dataset id -> (adapter module, native folder); subjects/cameras kept small for speed.
+# dataset id -> (its adapter's command in the registry, native folder); subjects/cameras kept small for speed.
 DATASETS = {
     "d1": ("faceolat", "faceolat"),
     "d2": ("ava256", "ava256"),
-    "d3": ("stereo_rig", "stereo_rig"),
+    "d3": ("stereo-rig", "stereo_rig"),
     "d4": ("nersemble", "nersemble"),
 }
 # Colour after calibration vs the true radiance (median relative error): None = only reported (D2 has
@@ -37,17 +49,14 @@ CAMERAS_KEPT = 4
 FRAMES_KEPT = 4
 
 
-def adapter_or_skip(name: str):
-    try:
-        return importlib.import_module(f"relightanyone.ingest.{name}")
-    except ModuleNotFoundError:
-        pytest.skip(f"adapter ingest/{name}.py does not exist yet")
+def registered_adapter(command: str) -> Adapter:
+    """The adapter registered as ``command``; fails (never skips) when there is none."""
+    assert command in ADAPTERS, f"no adapter {command!r} in relightanyone.ingest.registry.ADAPTERS"
+    return load_adapter(command)
 
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory) -> Path:
-    from relightanyone.synth.world import generate_world
-
     out = tmp_path_factory.mktemp("ingest_core_world") / "world"
     generate_world(out, "tiny", seed=3, progress=False)
     return out
@@ -59,8 +68,6 @@ def template_path(world: Path) -> Path:
 
 def stored_truth_pixels(truth: DatasetTruth, row, vertices: np.ndarray) -> np.ndarray:
     """``(V, 2)`` where the renderer drew ``vertices`` (canonical, unposed) in the stored crop of ``row``."""
-    import cv2
-
     cam = truth.cameras[row.camera]
     pose = truth.head_poses.get((row.subject, row.frame), np.eye(4))
     native = project_points(transform_points(pose, vertices), cam.K, cam.w2c, cam.dist)
@@ -100,8 +107,8 @@ def judge(dataset_dir: Path, truth: DatasetTruth, world: Path) -> dict:
 
 @pytest.mark.parametrize("dataset_id", sorted(DATASETS))
 def test_ingested_cameras_and_masks_match_the_truth(world, tmp_path, dataset_id):
-    module_name, native = DATASETS[dataset_id]
-    adapter = adapter_or_skip(module_name)
+    command, native = DATASETS[dataset_id]
+    adapter = registered_adapter(command)
     truth = DatasetTruth.load(world / "answers" / dataset_id / "truth.json")
     subjects = tuple(sorted(truth.splits))[:1]
     cameras = tuple(sorted(truth.cameras))[:CAMERAS_KEPT]
@@ -160,11 +167,6 @@ def colour_error(dataset_dir: Path, truth: DatasetTruth, plan) -> tuple[float, f
     radiance (the native recording with the true camera response undone, resampled the same way):
     as stored, and after one gain for the whole dataset (calibrations against a chart fix colour, not
     absolute exposure)."""
-    import cv2
-
-    from relightanyone.ingest.decode import TaskDecoder
-    from relightanyone.ingest.steps import undistort_crop_resize
-
     views = {(v.subject, v.frame, v.camera.name, v.pattern): v for s in plan.subjects for v in s.views}
     dataset = NormalizedDataset(dataset_dir)
     ours, theirs = [], []
@@ -194,19 +196,11 @@ def write_custom_capture(world: Path, out: Path, cameras: tuple[str, ...]) -> Da
     """Convert the first D1 subject's first frames into the documented custom layout, in millimetres of a
     rotated, shifted world: calibrated radiance as linear EXR and 16-bit linear PNG, one alpha map, the
     tracked meshes posed per frame. Returns the truth the custom dataset must match (identity response)."""
-    from dataclasses import replace
-
-    import cv2
-
-    from relightanyone.align.geometry import similarity
-    from relightanyone.format.codecs import encode_exr_half
-    from relightanyone.ingest import faceolat
-    from relightanyone.ingest.decode import TaskDecoder, apply_colour_calibration
-    from relightanyone.synth.template import write_obj
-
     truth = DatasetTruth.load(world / "answers" / "d1" / "truth.json")
     subject = sorted(truth.splits)[0]
-    plan = faceolat.plan(world / "faceolat", AdapterOptions(subjects=(subject,), cameras=cameras))
+    plan = registered_adapter("faceolat").plan(
+        world / "faceolat", AdapterOptions(subjects=(subject,), cameras=cameras)
+    )
     frames = sorted({v.frame for v in plan.subjects[0].views if v.pattern == "full"})[:2]
     angle = np.radians(30.0)
     R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
@@ -252,8 +246,7 @@ def write_custom_capture(world: Path, out: Path, cameras: tuple[str, ...]) -> Da
 
 
 def test_custom_capture_matches_the_truth(world, tmp_path):
-    from relightanyone.ingest import custom
-
+    custom = registered_adapter("custom")
     cameras = tuple(sorted(DatasetTruth.load(world / "answers" / "d1" / "truth.json").cameras))[:4]
     truth = write_custom_capture(world, tmp_path / "capture", cameras)
     assert custom.detect(tmp_path / "capture") == "v1"

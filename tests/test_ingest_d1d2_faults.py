@@ -3,7 +3,6 @@ rest of the dataset can still be ingested correctly."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import re
 import shutil
@@ -11,20 +10,18 @@ import zipfile
 
 import numpy as np
 import pytest
+from helpers.small_worlds import make_world, reduced_preset
 from PIL import Image
 
 from relightanyone.ingest import ava256, faceolat
 from relightanyone.ingest.records import AdapterOptions, LayoutError
 from relightanyone.synth.envmap import write_exr
-from relightanyone.synth.presets import PRESETS, DatasetSize
-from relightanyone.synth.world import generate_world
+from relightanyone.synth.presets import DatasetSize
 
-MICRO = dataclasses.replace(
-    PRESETS["tiny"],
+MICRO = reduced_preset(
     template_segments=12,
     texture_size=8,
     answer_lights=2,
-    envmap_count=0,
     d1=DatasetSize(train_subjects=2, test_subjects=0, cameras=2, image_size=(16, 24), lights=4),
     d2=DatasetSize(train_subjects=2, test_subjects=0, cameras=2, image_size=(64, 96), frames=2, lights=4),
 )
@@ -32,9 +29,7 @@ MICRO = dataclasses.replace(
 
 @pytest.fixture(scope="module")
 def pristine(tmp_path_factory):
-    out = tmp_path_factory.mktemp("world_faults") / "world"
-    generate_world(out, MICRO, seed=5, datasets=("d1", "d2"), progress=False)
-    return out
+    return make_world(tmp_path_factory.mktemp("world_faults"), MICRO, seed=5, datasets=("d1", "d2"))
 
 
 @pytest.fixture

@@ -6,24 +6,17 @@ in seconds; the layouts, conventions and faults it writes are the tiny preset's.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
+from helpers.small_worlds import make_world, reduced_preset
 from helpers.synth_judge import project, subject_vertices, truth_of
 
 from relightanyone.align.geometry import transform_points
 from relightanyone.ingest import ava256, faceolat
 from relightanyone.ingest.records import AdapterOptions, DatasetPlan
-from relightanyone.synth.presets import PRESETS, DatasetSize
-from relightanyone.synth.world import generate_world
+from relightanyone.synth.presets import DatasetSize
 
-SMALL = dataclasses.replace(
-    PRESETS["tiny"],
-    template_segments=16,
-    texture_size=16,
-    answer_lights=4,
-    envmap_count=0,
+SMALL = reduced_preset(
     d1=DatasetSize(train_subjects=3, test_subjects=0, cameras=4, image_size=(48, 72), lights=8),
     d2=DatasetSize(train_subjects=2, test_subjects=0, cameras=4, image_size=(52, 80), frames=2, lights=8),
 )
@@ -31,9 +24,7 @@ SMALL = dataclasses.replace(
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
-    out = tmp_path_factory.mktemp("world_d1d2") / "world"
-    generate_world(out, SMALL, seed=3, datasets=("d1", "d2"), progress=False)
-    return out
+    return make_world(tmp_path_factory.mktemp("world_d1d2"), SMALL, seed=3, datasets=("d1", "d2"))
 
 
 @pytest.fixture(scope="module")

@@ -8,13 +8,13 @@ its recorded colour undone with ``truth.colour_response``, sampled where the tru
 
 from __future__ import annotations
 
-import dataclasses
 import shutil
 
 import av
 import cv2
 import numpy as np
 import pytest
+from helpers.small_worlds import make_world, reduced_preset
 from helpers.synth_judge import project, subject_vertices
 
 from relightanyone.align.colour import srgb_to_linear
@@ -23,16 +23,10 @@ from relightanyone.format.reader import NormalizedDataset
 from relightanyone.ingest import nersemble, runner, stereo_rig
 from relightanyone.ingest.records import AdapterOptions
 from relightanyone.synth.d3_stereo_rig import decode_dng
-from relightanyone.synth.presets import PRESETS, DatasetSize
+from relightanyone.synth.presets import DatasetSize
 from relightanyone.synth.truth import DatasetTruth
-from relightanyone.synth.world import generate_world
 
-MINI = dataclasses.replace(
-    PRESETS["tiny"],
-    template_segments=16,
-    texture_size=16,
-    answer_lights=4,
-    envmap_count=0,
+MINI = reduced_preset(
     d3=DatasetSize(train_subjects=1, test_subjects=0, cameras=8, image_size=(160, 120), lights=4),
     d4=DatasetSize(train_subjects=1, test_subjects=0, cameras=4, image_size=(64, 96), frames=2, lights=8),
 )
@@ -41,9 +35,7 @@ D3_CAMERAS = ("cam00", "cam03", "cam04", "cam07")
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
-    out = tmp_path_factory.mktemp("world_d3d4_runner") / "world"
-    generate_world(out, MINI, seed=11, datasets=("d3", "d4"), progress=False)
-    return out
+    return make_world(tmp_path_factory.mktemp("world_d3d4_runner"), MINI, seed=11, datasets=("d3", "d4"))
 
 
 def ingest(world, plan, dataset: str, out):

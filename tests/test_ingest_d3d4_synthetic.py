@@ -8,7 +8,6 @@ an affine colour correction.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import shutil
 
@@ -17,21 +16,16 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
+from helpers.small_worlds import make_world, reduced_preset
 from helpers.synth_judge import project, subject_vertices, truth_of
 
 from relightanyone.align.colour import linear_to_srgb, srgb_to_linear
 from relightanyone.align.geometry import transform_points
 from relightanyone.ingest import nersemble, stereo_rig
 from relightanyone.ingest.records import AdapterOptions, DatasetPlan, LayoutError
-from relightanyone.synth.presets import PRESETS, DatasetSize
-from relightanyone.synth.world import generate_world
+from relightanyone.synth.presets import DatasetSize
 
-SMALL = dataclasses.replace(
-    PRESETS["tiny"],
-    template_segments=16,
-    texture_size=16,
-    answer_lights=4,
-    envmap_count=0,
+SMALL = reduced_preset(
     # The chart must stay detectable by cv2.mcc: D3 keeps the tiny preset's 160x120 frames.
     d3=DatasetSize(train_subjects=2, test_subjects=0, cameras=8, image_size=(160, 120), lights=4),
     d4=DatasetSize(train_subjects=2, test_subjects=0, cameras=5, image_size=(64, 96), frames=2, lights=8),
@@ -40,9 +34,7 @@ SMALL = dataclasses.replace(
 
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
-    out = tmp_path_factory.mktemp("world_d3d4") / "world"
-    generate_world(out, SMALL, seed=5, datasets=("d3", "d4"), progress=False)
-    return out
+    return make_world(tmp_path_factory.mktemp("world_d3d4"), SMALL, seed=5, datasets=("d3", "d4"))
 
 
 def assert_projects_like_truth(world, dataset: str, plan: DatasetPlan) -> int:

@@ -3,32 +3,43 @@ same bytes as an uninterrupted run and nothing duplicated."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import select
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
+
+from helpers.kill_handshake import HANG_GUARD_SECONDS
 
 from relightanyone.pipelines.dag.runner import STAGE_RECORD_NAME, execute, load_pipeline, plan
 
 # A resumable, deterministic stage: writes parts one by one (each atomically), skipping finished ones, and
 # appends one line per part it wrote to a journal outside its output, so duplicated work would show.
-# It prints nothing: only the runner's death signal (not a broken pipe) can stop it.
-SLOW_SCRIPT = """
-import os, pathlib, sys, time
+# It prints nothing: only the runner's death signal (not a broken pipe) can stop it. When HANDSHAKE_ENV
+# names a FIFO, it announces part 3 there and then waits, holding the FIFO open until it dies.
+HANDSHAKE_ENV = "STAGE_HANDSHAKE_FIFO"
+SLOW_SCRIPT = f"""
+import os, pathlib, signal, sys
 out, journal, count = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2]), int(sys.argv[3])
+handshake = os.environ.get({HANDSHAKE_ENV!r})
 for i in range(count):
-    part = out / f"part-{i:02d}.txt"
+    part = out / f"part-{{i:02d}}.txt"
     if part.exists():
         continue
     tmp = part.with_suffix(".tmp")
-    tmp.write_text(f"part {i}\\n" * 500)
+    tmp.write_text(f"part {{i}}\\n" * 500)
     os.replace(tmp, part)
     with open(journal, "a") as handle:
-        handle.write(f"{i}\\n")
-    time.sleep(0.25)
+        handle.write(f"{{i}}\\n")
+    if handshake and i == 3:
+        fifo = open(handshake, "w")
+        fifo.write("PART 3 WRITTEN\\n")
+        fifo.flush()
+        while True:
+            signal.pause()
 (out / "summary.txt").write_text("".join(sorted(p.name + "\\n" for p in out.glob("part-*.txt"))))
 """
 
@@ -46,6 +57,13 @@ stages:
 """
 
 
+def read_fifo(fd: int) -> bytes:
+    """What is ready on the FIFO ``fd`` (b"" once every writer has closed it); fails after the hang guard."""
+    ready, _, _ = select.select([fd], [], [], HANG_GUARD_SECONDS)
+    assert ready, f"nothing happened on the handshake FIFO for {HANG_GUARD_SECONDS} s"
+    return os.read(fd, 4096)
+
+
 def recorded_digest(output: Path) -> str:
     return json.loads((output / STAGE_RECORD_NAME).read_text())["outputs"]["digest"]
 
@@ -60,6 +78,10 @@ def test_sigkill_mid_stage_then_rerun_matches_an_uninterrupted_run(tmp_path):
     execute(load_pipeline(pipeline_file, {"out": str(reference)}), echo=None, announce=lambda _: None)
 
     killed = tmp_path / "killed"
+    fifo = tmp_path / "handshake"
+    os.mkfifo(fifo)
+    # Non-blocking, so that the hang guard applies while no writer has opened the FIFO yet.
+    reader = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)
     runner = subprocess.Popen(
         [
             sys.executable,
@@ -74,26 +96,23 @@ def test_sigkill_mid_stage_then_rerun_matches_an_uninterrupted_run(tmp_path):
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         start_new_session=True,
+        env={**os.environ, HANDSHAKE_ENV: str(fifo)},
     )
     try:
-        deadline = time.monotonic() + 120
-        while not (killed / "slow" / "part-03.txt").exists():
-            assert runner.poll() is None, "the run ended before it could be interrupted"
-            assert time.monotonic() < deadline, "the stage never got going"
-            time.sleep(0.05)
+        assert read_fifo(reader) == b"PART 3 WRITTEN\n", "the run ended before its stage reached part 3"
+        assert runner.poll() is None
         os.kill(runner.pid, signal.SIGKILL)  # the runner only: its stage must die with it
-        runner.wait(timeout=30)
-        time.sleep(0.8)
-        parts_after_kill = sorted(p.name for p in (killed / "slow").glob("part-*.txt"))
-        time.sleep(0.8)
-        assert sorted(p.name for p in (killed / "slow").glob("part-*.txt")) == parts_after_kill, (
-            "the stage kept running after the runner was killed"
-        )
+        runner.wait(timeout=HANG_GUARD_SECONDS)
+        # End of file: the stage, the only writer, has closed the FIFO, which it does only by dying.
+        assert read_fifo(reader) == b"", "the stage kept running after the runner was killed"
     finally:
-        if runner.poll() is None:
+        os.close(reader)
+        with contextlib.suppress(ProcessLookupError):
             os.killpg(runner.pid, signal.SIGKILL)
-            runner.wait()
-    assert 4 <= len(parts_after_kill) < 12
+        runner.wait()
+    assert sorted(p.name for p in (killed / "slow").glob("part-*.txt")) == [
+        f"part-{i:02d}.txt" for i in range(4)
+    ]
     assert not (killed / "slow" / STAGE_RECORD_NAME).exists()  # a partial run never looks complete
     assert (killed / ".slow_stage.log").exists()  # the live log of the killed stage, beside its output
     pipeline = load_pipeline(pipeline_file, {"out": str(killed)})

@@ -5,9 +5,20 @@ from __future__ import annotations
 
 import pytest
 import torch
-from test_raster_reference import GAUSSIAN_INPUTS, assert_close, random_scene, render_with_grads
+from helpers.raster_scenes import (
+    GAUSSIAN_INPUTS,
+    assert_close,
+    project_scene,
+    random_scene,
+    render_with_grads,
+)
 
-from relightanyone.render.rasterize_cpp import bin_gaussians_to_tiles_cpp, tile_kernel_available
+from relightanyone.render.rasterize import rasterize
+from relightanyone.render.rasterize_cpp import (
+    bin_gaussians_to_tiles_cpp,
+    project_gaussians_cpp,
+    tile_kernel_available,
+)
 from relightanyone.render.rasterize_torch import bin_gaussians_to_tiles, project_gaussians
 
 pytestmark = pytest.mark.skipif(
@@ -21,9 +32,7 @@ def test_compiled_binning_equals_torch_binning(dtype):
         n=300, cameras=2, width=70, height=50, seed=9, dtype=dtype, scale_range=(0.005, 0.08)
     )
     scene["means"][:5, 0] += 0.8  # some Gaussians off screen
-    proj = project_gaussians(
-        scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["w2c"], scene["K"], 70, 50
-    )
+    proj = project_scene(scene)
     depths = proj.depths.clone()
     depths[:, 10:40] = depths[:, 10:11]  # ties in depth must keep the Gaussian order
     expected = bin_gaussians_to_tiles(proj.means2d, proj.radii, depths, 70, 50, tile_size=16)
@@ -108,8 +117,6 @@ def projection_scene(seed: int) -> dict:
 
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
 def test_compiled_projection_matches_torch_projection(mode):
-    from relightanyone.render.rasterize_cpp import project_gaussians_cpp
-
     scene = projection_scene(seed=21)
     names = ("means", "quats", "scales", "opacities")
     results = []
@@ -138,8 +145,6 @@ def test_compiled_projection_matches_torch_projection(mode):
 
 def test_cpp_backend_with_camera_gradients_matches_torch_backend():
     """Optimised cameras take the PyTorch projection; the compiled compositor still runs."""
-    from relightanyone.render.rasterize import rasterize
-
     scene = random_scene(seed=3, dtype=torch.float32)
     grads = []
     for backend in ("torch", "cpp"):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from test_raster_reference import GAUSSIAN_INPUTS, assert_close, random_scene, render_with_grads
+from helpers.raster_scenes import GAUSSIAN_INPUTS, assert_close, random_scene, render_with_grads
 
 pytestmark = pytest.mark.gpu
 

@@ -6,7 +6,7 @@ import warnings
 
 import pytest
 import torch
-from test_raster_reference import GAUSSIAN_INPUTS, random_scene
+from helpers.raster_scenes import GAUSSIAN_INPUTS, random_scene
 
 from relightanyone.render import rasterize_cpp
 from relightanyone.render.rasterize import rasterize, select_backend

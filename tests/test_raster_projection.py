@@ -4,13 +4,9 @@ from __future__ import annotations
 
 import pytest
 import torch
-from test_raster_reference import random_scene
+from helpers.raster_scenes import project_scene, random_scene
 
-from relightanyone.render.rasterize_torch import (
-    bin_gaussians_to_tiles,
-    covariances_from_quats_scales,
-    project_gaussians,
-)
+from relightanyone.render.rasterize_torch import bin_gaussians_to_tiles, covariances_from_quats_scales
 
 torch_impl = pytest.importorskip("gsplat.cuda._torch_impl", reason="gsplat (dev extra) is not installed")
 
@@ -28,17 +24,7 @@ def test_projection_equals_gsplat_torch_reference(mode):
     scene = random_scene(n=200, cameras=3, width=64, height=48, seed=2)
     # push a few Gaussians far to the side so that the Jacobian clamp is exercised
     scene["means"][:10, 0] += 0.8
-    ours = project_gaussians(
-        scene["means"],
-        scene["quats"],
-        scene["scales"],
-        scene["opacities"],
-        scene["w2c"],
-        scene["K"],
-        64,
-        48,
-        mode=mode,
-    )
+    ours = project_scene(scene, mode=mode)
     covars, _ = torch_impl._quat_scale_to_covar_preci(scene["quats"], scene["scales"], compute_preci=False)
     radii, means2d, depths, conics, compensations = torch_impl._fully_fused_projection(
         scene["means"],
@@ -71,9 +57,7 @@ def test_covariance_matches_gsplat():
 
 def test_binning_lists_every_touched_tile_sorted_by_depth():
     scene = random_scene(n=60, cameras=2, width=70, height=50, seed=9)
-    proj = project_gaussians(
-        scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["w2c"], scene["K"], 70, 50
-    )
+    proj = project_scene(scene)
     bins = bin_gaussians_to_tiles(proj.means2d, proj.radii, proj.depths, 70, 50, tile_size=16)
     tiles_per_camera = bins.tiles_x * bins.tiles_y
     flat_depths = proj.depths.reshape(-1)

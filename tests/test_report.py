@@ -14,6 +14,7 @@ from click.testing import CliRunner
 from helpers.sphere_world import (
     LIGHTS,
     lambert_sphere,
+    rig_lights,
     sphere_camera,
     sphere_row,
     write_flat_world,
@@ -23,7 +24,6 @@ from PIL import Image
 
 from relightanyone.format.schema import (
     DatasetInfo,
-    LightRow,
     Provenance,
     fingerprint_config,
 )
@@ -73,18 +73,7 @@ def write_expanded_world(root: Path) -> Path:
     )
     writer = ShardWriter(folder, info)
     writer.begin()
-    writer.write_lights(
-        [
-            LightRow(
-                index=k,
-                name=f"rig{k}",
-                position_m=tuple(p),
-                intensity_rgb=(1.0,) * 3,
-                pattern=f"olat-{3 - k:03d}",
-            )
-            for k, p in enumerate(LIGHTS)
-        ]
-    )
+    writer.write_lights(rig_lights(1.0, "rig", [f"olat-{3 - k:03d}" for k in range(len(LIGHTS))]))
     with writer.part("x00") as part:
         for c in (0, 1):
             K, w2c = sphere_camera(c)

@@ -5,16 +5,15 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
+from helpers.kill_handshake import HANG_GUARD_SECONDS, kill_at, start_python
 from helpers.stage1_world import tiny_stage1_preset, train_script, write_dataset
 
 from relightanyone.cli import cli
@@ -23,17 +22,9 @@ from relightanyone.model.train.data import Stage1Data
 from relightanyone.model.train.held_out import evaluate_held_out
 from relightanyone.model.train.stage1 import Stage1Config, build_model, train_stage1
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 CAST = np.array([[1.3, 0.1, 0.0], [0.0, 0.9, 0.0], [0.0, 0.05, 0.6]])
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One torch thread: the suite runs two workers on two cores, and spinning OpenMP threads of
-    oversubscribed processes slow every step tenfold."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
 
 
 @pytest.fixture(scope="module")
@@ -85,26 +76,17 @@ def test_sigkill_then_resume_gives_the_uninterrupted_weights(world, tmp_path):
         [sys.executable, "-c", train_script(world, reference, **settings)],
         check=True,
         env=_env(),
-        timeout=240,
+        timeout=HANG_GUARD_SECONDS,
     )
-    process = subprocess.Popen(
-        [sys.executable, "-c", train_script(world, interrupted, **settings)], env=_env()
-    )
-    deadline = time.monotonic() + 180
+    script = train_script(world, interrupted, kill_after_checkpoint=4, **settings)
+    kill_at(start_python(script, env=_env()), "CHECKPOINT 4")
     checkpoint = interrupted / "checkpoint.pt"
-    while time.monotonic() < deadline and process.poll() is None:
-        if checkpoint.is_file() and load_checkpoint(checkpoint)["iteration"] >= 2:
-            break
-        time.sleep(0.05)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
-    killed_at = load_checkpoint(checkpoint)["iteration"]
-    assert killed_at < 10, "the run finished before it could be killed"
+    assert load_checkpoint(checkpoint)["iteration"] == 4
     subprocess.run(
         [sys.executable, "-c", train_script(world, interrupted, **settings)],
         check=True,
         env=_env(),
-        timeout=240,
+        timeout=HANG_GUARD_SECONDS,
     )
     expected = load_checkpoint(reference / "checkpoint.pt")
     resumed = load_checkpoint(checkpoint)
@@ -197,39 +179,10 @@ def test_render_command_swaps_lighting_codes_without_moving_geometry(trained_run
     assert report["mean_colour_shift_norm"] > 0
     assert len(report["files"]) == 4 and all(Path(f).is_file() for f in report["files"])
     assert (tmp_path / "png" / "lighting_grid.png").is_file()
-    orbit = runner.invoke(
-        cli,
-        [
-            "render",
-            "stage1",
-            str(out),
-            "--subject",
-            "s00",
-            "--cameras",
-            "orbit",
-            "--orbit-count",
-            "3",
-            "--out",
-            str(tmp_path / "orbit"),
-        ],
-    )
+    orbit_args = ["--cameras", "orbit", "--orbit-count", "3", "--out", str(tmp_path / "orbit")]
+    orbit = runner.invoke(cli, ["render", "stage1", str(out), "--subject", "s00", *orbit_args])
     assert orbit.exit_code != 0 and "several datasets" in orbit.output
-    orbit = runner.invoke(
-        cli,
-        [
-            "render",
-            "stage1",
-            str(out),
-            "--subject",
-            "db/s00",
-            "--cameras",
-            "orbit",
-            "--orbit-count",
-            "3",
-            "--out",
-            str(tmp_path / "orbit"),
-        ],
-    )
+    orbit = runner.invoke(cli, ["render", "stage1", str(out), "--subject", "db/s00", *orbit_args])
     assert orbit.exit_code == 0, orbit.output
     assert len(list((tmp_path / "orbit").glob("*.png"))) == 3
 

@@ -13,13 +13,14 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from helpers.sphere_world import LIGHTS, SIZE, lambert_sphere, sphere_camera, sphere_row
+from helpers.sphere_world import LIGHTS, SIZE, lambert_sphere, rig_lights, sphere_camera, sphere_row
 from helpers.sphere_world import tiny_stage2_preset as sphere_tiny_stage2_preset
-from helpers.stage1_world import sphere_obj, tiny_stage1_preset
+from helpers.stage1_world import sphere_dataset, sphere_mesh, tiny_stage1_preset, write_dataset
 
+from relightanyone.cli import cli
 from relightanyone.format.examples import look_at_w2c
-from relightanyone.format.schema import DatasetInfo, LightRow, MeshRow, Provenance, fingerprint_config
-from relightanyone.format.shards import ShardWriter
+from relightanyone.model.networks.reflectance import camera_centres
+from relightanyone.model.networks.stage2 import texel_mesh_normals
 from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.model.train.stage1 import Stage1Config, train_stage1
 from relightanyone.model.train.stage2 import Stage2Config, Stage2Trainer
@@ -35,59 +36,35 @@ def stage2_camera(c: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_olat_dataset(root: Path, name: str = "olat", subjects: int = 2, cameras: int = 3) -> Path:
-    vertices, obj_text = sphere_obj()
-    dataset_dir = root / name
-    info = DatasetInfo(
-        name=name,
-        kind="olat",
-        template_mesh_id="sphere",
-        lighting="4-light OLAT rig + full-on",
-        provenance=Provenance(source_dataset="stage2 test sphere world", licence="CC0"),
-        config_fingerprint=fingerprint_config({"name": name}),
-    )
-    writer = ShardWriter(dataset_dir, info)
-    writer.begin()
-    writer.write_lights(
-        [
-            LightRow(
-                index=k,
-                name=f"L{k}",
-                position_m=tuple(p),
-                intensity_rgb=(LIGHT_INTENSITY,) * 3,
-                pattern=f"olat-{k:03d}",
-            )
-            for k, p in enumerate(LIGHTS)
-        ]
-    )
     rig = np.full((len(LIGHTS), 3), LIGHT_INTENSITY)
     rng = np.random.default_rng(3)
-    for s in range(subjects):
-        subject = f"s{s:02d}"
-        albedo = rng.uniform(0.3, 0.9, 3)
-        with writer.part(subject) as part:
-            part.add_mesh(MeshRow(subject=subject, frame=0, vertices=vertices.astype(np.float32)))
-            for c in range(cameras):
-                K, w2c = stage2_camera(c)
-                patterns = {"full": slice(None)} | {f"olat-{k:03d}": slice(k, k + 1) for k in range(4)}
-                for pattern, lights in patterns.items():
-                    image, mask = lambert_sphere(1.0, albedo, K, w2c, LIGHTS[lights], rig[lights])
-                    part.add(sphere_row(name, subject, c, pattern, "train", image, mask, (K, w2c)))
-    writer.commit()
-    (dataset_dir / "template.obj").write_text(obj_text)
-    return dataset_dir
+    lighting = "4-light OLAT rig + full-on"
+    with sphere_dataset(root, name, "olat", lighting, "stage2 test sphere world", {"name": name}) as writer:
+        writer.write_lights(rig_lights(LIGHT_INTENSITY))
+        for s in range(subjects):
+            subject = f"s{s:02d}"
+            albedo = rng.uniform(0.3, 0.9, 3)
+            with writer.part(subject) as part:
+                part.add_mesh(sphere_mesh(subject))
+                for c in range(cameras):
+                    K, w2c = stage2_camera(c)
+                    patterns = {"full": slice(None)} | {f"olat-{k:03d}": slice(k, k + 1) for k in range(4)}
+                    for pattern, lights in patterns.items():
+                        image, mask = lambert_sphere(1.0, albedo, K, w2c, LIGHTS[lights], rig[lights])
+                        part.add(sphere_row(name, subject, c, pattern, "train", image, mask, (K, w2c)))
+    return root / name
 
 
 def tiny_stage2_preset(**changes):
     """The sphere world's stage-2 preset, trained a little longer and on full-on frames half the time."""
-    settings = dict(
+    longer = dict(
         iterations=10,
         normal_anneal_iterations=5,
         albedo_anneal_iterations=5,
         checkpoint_every=5,
         full_on_fraction=0.5,
     )
-    settings.update(changes)
-    return sphere_tiny_stage2_preset(**settings)
+    return sphere_tiny_stage2_preset(**(longer | changes))
 
 
 @pytest.fixture(scope="module")
@@ -142,9 +119,6 @@ def test_stage2_trains_with_stage1_frozen_and_lowers_the_loss(olat_world, tmp_pa
     info = json.loads((out / "run.json").read_text())
     assert info["stage"] == "stage2" and info["frames"] == {"full_on": 6, "olat": 24} and info["lights"] == 4
     # The albedo follows the colours stage 2 is given (a shared prior let it predict one albedo for all).
-    from relightanyone.model.networks.reflectance import camera_centres
-    from relightanyone.model.networks.stage2 import texel_mesh_normals
-
     subjects = batches[0]["subject_index"]
     with torch.no_grad():
         vertices, gaussians = trainer.stage1(subjects, torch.full_like(subjects, trainer.lighting_index))
@@ -206,8 +180,6 @@ def test_single_stage_flag_trains_through_the_same_trainer(olat_world, tmp_path)
 
 
 def test_cli_trains_stage2_and_explains_bad_input(olat_world, tmp_path):
-    from relightanyone.cli import cli
-
     dataset, run = olat_world
     runner = CliRunner()
     result = runner.invoke(
@@ -231,8 +203,6 @@ def test_cli_trains_stage2_and_explains_bad_input(olat_world, tmp_path):
     assert load_checkpoint(tmp_path / "cli" / "checkpoint.pt")["iteration"] == 2
     missing = runner.invoke(cli, ["train", "stage2", "--data", str(dataset), "--out", str(tmp_path / "x")])
     assert missing.exit_code != 0 and "--stage1" in missing.output
-    from helpers.stage1_world import write_dataset
-
     flat = write_dataset(tmp_path, "flat", subjects=1, cameras=2, size=16)
     no_rig = runner.invoke(
         cli, ["train", "stage2", "--data", str(flat), "--single-stage", "--out", str(tmp_path / "y")]

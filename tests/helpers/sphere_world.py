@@ -11,23 +11,17 @@ full-on frame each). Their true OLAT images are :func:`true_olat_image`.
 
 from __future__ import annotations
 
-import hashlib
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from helpers.stage1_world import RADIUS, sphere_obj, tiny_stage1_preset
-from relightanyone.format.codecs import encode_image, encode_mask
+from helpers.stage1_world import RADIUS, sphere_dataset, sphere_image_row, sphere_mesh, tiny_stage1_preset
 from relightanyone.format.examples import look_at_w2c
-from relightanyone.format.schema import (
-    DatasetInfo,
-    LightRow,
-    MeshRow,
-    Provenance,
-    build_image_row,
-    fingerprint_config,
-)
-from relightanyone.format.shards import ShardWriter
+from relightanyone.format.schema import LightRow
+from relightanyone.model.networks.presets import get_stage2_preset
+from relightanyone.model.train.stage1 import Stage1Config, train_stage1
+from relightanyone.model.train.stage2 import Stage2Config, train_stage2
 
 SIZE = 24
 LIGHTS = np.array([[0.8, 0.4, 0.6], [-0.8, 0.3, 0.6], [0.0, 0.9, 0.5], [0.0, -0.5, 0.9]])
@@ -66,70 +60,46 @@ def sphere_row(dataset: str, subject: str, camera: int, pattern: str, split: str
     """The normalized image row of one rendered sphere view (frame 0, camera ``cam{camera:02d}``); ``pose``
     (K, w2c) when the view is not :func:`sphere_camera`'s."""
     K, w2c = pose or sphere_camera(camera)
-    source = f"{subject}/{pattern}/cam{camera:02d}.exr"
-    return build_image_row(
-        dataset=dataset,
-        subject=subject,
-        frame=0,
-        camera=f"cam{camera:02d}",
-        pattern=pattern,
-        split=split,
-        K=K,
-        w2c=w2c,
-        image=encode_image(image),
-        image_encoding="raw-f16",
-        mask=encode_mask(mask),
-        width=SIZE,
-        height=SIZE,
-        source=source,
-        source_sha256=hashlib.sha256(source.encode()).hexdigest(),
+    name = f"cam{camera:02d}"
+    return sphere_image_row(
+        dataset, subject, name, pattern, split, K, w2c, image, mask, f"{subject}/{pattern}/{name}.exr"
     )
+
+
+def rig_lights(intensity: float, name: str = "L", patterns: Sequence[str] | None = None) -> list[LightRow]:
+    """The four lights of the rig (:data:`LIGHTS`), each of grey ``intensity``: light k is named
+    ``{name}{k}`` and lit alone in ``patterns[k]`` (default ``olat-{k:03d}``)."""
+    patterns = patterns or [f"olat-{k:03d}" for k in range(len(LIGHTS))]
+    return [
+        LightRow(
+            index=k, name=f"{name}{k}", position_m=tuple(p), intensity_rgb=(intensity,) * 3, pattern=pattern
+        )
+        for k, (p, pattern) in enumerate(zip(LIGHTS, patterns, strict=True))
+    ]
 
 
 def write_olat_world(root: Path) -> Path:
     """The OLAT dataset ``root/olat``: s00, s01 (train) under the rig and OLAT; s02 (test) under SCENE_INTENSITIES."""
-    vertices, obj_text = sphere_obj()
-    folder = root / "olat"
-    info = DatasetInfo(
-        name="olat",
-        kind="olat",
-        template_mesh_id="sphere",
-        lighting="4-light OLAT rig + full-on",
-        provenance=Provenance(source_dataset="fit test sphere world", licence="CC0"),
-        config_fingerprint=fingerprint_config({"name": "fit-world"}),
-    )
-    writer = ShardWriter(folder, info)
-    writer.begin()
-    writer.write_lights(
-        [
-            LightRow(
-                index=k,
-                name=f"L{k}",
-                position_m=tuple(p),
-                intensity_rgb=(RIG_INTENSITY,) * 3,
-                pattern=f"olat-{k:03d}",
-            )
-            for k, p in enumerate(LIGHTS)
-        ]
-    )
     rig = np.full((4, 3), RIG_INTENSITY)
-    for subject, (scale, albedo, split) in SUBJECTS.items():
-        with writer.part(subject) as part:
-            part.add_mesh(MeshRow(subject=subject, frame=0, vertices=(vertices * scale).astype(np.float32)))
-            for c in range(4):
-                K, w2c = sphere_camera(c)
-                if split == "train":
-                    patterns = {"full": (LIGHTS, rig)} | {
-                        f"olat-{k:03d}": (LIGHTS[k : k + 1], rig[k : k + 1]) for k in range(4)
-                    }
-                else:
-                    patterns = {"full": (LIGHTS, SCENE_INTENSITIES)}
-                for pattern, (positions, intensities) in patterns.items():
-                    image, mask = lambert_sphere(scale, albedo, K, w2c, positions, intensities)
-                    part.add(sphere_row("olat", subject, c, pattern, split, image, mask))
-    writer.commit()
-    (folder / "template.obj").write_text(obj_text)
-    return folder
+    with sphere_dataset(
+        root, "olat", "olat", "4-light OLAT rig + full-on", "fit test sphere world", {"name": "fit-world"}
+    ) as writer:
+        writer.write_lights(rig_lights(RIG_INTENSITY))
+        for subject, (scale, albedo, split) in SUBJECTS.items():
+            with writer.part(subject) as part:
+                part.add_mesh(sphere_mesh(subject, scale))
+                for c in range(4):
+                    K, w2c = sphere_camera(c)
+                    if split == "train":
+                        patterns = {"full": (LIGHTS, rig)} | {
+                            f"olat-{k:03d}": (LIGHTS[k : k + 1], rig[k : k + 1]) for k in range(4)
+                        }
+                    else:
+                        patterns = {"full": (LIGHTS, SCENE_INTENSITIES)}
+                    for pattern, (positions, intensities) in patterns.items():
+                        image, mask = lambert_sphere(scale, albedo, K, w2c, positions, intensities)
+                        part.add(sphere_row("olat", subject, c, pattern, split, image, mask))
+    return root / "olat"
 
 
 FLAT_INTENSITIES = np.full((4, 3), 1.5)
@@ -155,34 +125,21 @@ def true_olat_image(subject: str, camera: int, light: int) -> tuple[np.ndarray, 
 
 def write_flat_world(root: Path) -> Path:
     """The flat-lit dataset ``root/flat`` (kind "flat", no lights.arrow)."""
-    vertices, obj_text = sphere_obj()
-    folder = root / "flat"
-    info = DatasetInfo(
-        name="flat",
-        kind="flat",
-        template_mesh_id="sphere",
-        lighting="uniform full-on",
-        provenance=Provenance(source_dataset="fit test sphere world (flat)", licence="CC0"),
-        config_fingerprint=fingerprint_config({"name": "flat-world"}),
-    )
-    writer = ShardWriter(folder, info)
-    writer.begin()
-    for subject, (scale, albedo, split) in FLAT_SUBJECTS.items():
-        with writer.part(subject) as part:
-            part.add_mesh(MeshRow(subject=subject, frame=0, vertices=(vertices * scale).astype(np.float32)))
-            for c in range(4):
-                K, w2c = sphere_camera(c)
-                image, mask = lambert_sphere(scale, albedo, K, w2c, LIGHTS, FLAT_INTENSITIES)
-                part.add(sphere_row("flat", subject, c, "full", split, image, mask))
-    writer.commit()
-    (folder / "template.obj").write_text(obj_text)
-    return folder
+    with sphere_dataset(
+        root, "flat", "flat", "uniform full-on", "fit test sphere world (flat)", {"name": "flat-world"}
+    ) as writer:
+        for subject, (scale, albedo, split) in FLAT_SUBJECTS.items():
+            with writer.part(subject) as part:
+                part.add_mesh(sphere_mesh(subject, scale))
+                for c in range(4):
+                    K, w2c = sphere_camera(c)
+                    image, mask = lambert_sphere(scale, albedo, K, w2c, LIGHTS, FLAT_INTENSITIES)
+                    part.add(sphere_row("flat", subject, c, "full", split, image, mask))
+    return root / "flat"
 
 
 def tiny_stage2_preset(**changes):
     """A stage-2 preset sized for the sphere world (SH order 2, 8-16 channels, a few iterations)."""
-    from relightanyone.model.networks.presets import get_stage2_preset
-
     settings = dict(
         sh_order=2,
         base_channels=8,
@@ -205,9 +162,6 @@ def build_sphere_world(
 ) -> dict[str, Path]:
     """Write the datasets and train the runs. Returns paths: data (the OLAT dataset), flat (when asked),
     stage1 (trained on olat, and flat when asked), stage2, single_stage (when asked), root."""
-    from relightanyone.model.train.stage1 import Stage1Config, train_stage1
-    from relightanyone.model.train.stage2 import Stage2Config, train_stage2
-
     paths = {"root": root, "data": write_olat_world(root)}
     datasets = [paths["data"]]
     if flat:

@@ -8,14 +8,25 @@ albedo times the dataset's colour cast, over a grey background the mask excludes
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
+from helpers.kill_handshake import IMPORT_HELPERS
 from relightanyone.format.codecs import encode_image, encode_mask
 from relightanyone.format.examples import look_at_w2c
-from relightanyone.format.schema import DatasetInfo, MeshRow, Provenance, build_image_row, fingerprint_config
+from relightanyone.format.schema import (
+    DatasetInfo,
+    ImageRow,
+    MeshRow,
+    Provenance,
+    build_image_row,
+    fingerprint_config,
+)
 from relightanyone.format.shards import ShardWriter
+from relightanyone.model.networks.presets import get_preset
 
 RADIUS = 0.1
 
@@ -96,6 +107,66 @@ def render_sphere(scale: float, albedo: np.ndarray, K: np.ndarray, w2c: np.ndarr
     return image, mask
 
 
+def sphere_image_row(
+    dataset: str,
+    subject: str,
+    camera: str,
+    pattern: str,
+    split: str,
+    K: np.ndarray,
+    w2c: np.ndarray,
+    image: np.ndarray,
+    mask: np.ndarray,
+    source: str,
+) -> ImageRow:
+    """The normalized row of one rendered view of frame 0: ``image`` (H, W, 3) linear float stored as
+    raw-f16, ``mask`` (H, W) bool; ``source`` is a made-up native path (its sha256 is of the path)."""
+    return build_image_row(
+        dataset=dataset,
+        subject=subject,
+        frame=0,
+        camera=camera,
+        pattern=pattern,
+        split=split,
+        K=K,
+        w2c=w2c,
+        image=encode_image(image),
+        image_encoding="raw-f16",
+        mask=encode_mask(mask),
+        width=image.shape[1],
+        height=image.shape[0],
+        source=source,
+        source_sha256=hashlib.sha256(source.encode()).hexdigest(),
+    )
+
+
+def sphere_mesh(subject: str, scale: float = 1.0) -> MeshRow:
+    """The tracked mesh of a subject's frame 0: the template sphere scaled by ``scale``."""
+    vertices, _ = sphere_obj()
+    return MeshRow(subject=subject, frame=0, vertices=(vertices * scale).astype(np.float32))
+
+
+@contextmanager
+def sphere_dataset(
+    root: Path, name: str, kind: str, lighting: str, source_dataset: str, fingerprint: dict
+) -> Iterator[ShardWriter]:
+    """Write the normalized dataset ``root/name`` of sphere subjects (template "sphere", CC0): yields its
+    begun ShardWriter; when the block ends, commits it and writes the sphere's ``template.obj`` beside it."""
+    info = DatasetInfo(
+        name=name,
+        kind=kind,
+        template_mesh_id="sphere",
+        lighting=lighting,
+        provenance=Provenance(source_dataset=source_dataset, licence="CC0"),
+        config_fingerprint=fingerprint_config(fingerprint),
+    )
+    writer = ShardWriter(root / name, info)
+    writer.begin()
+    yield writer
+    writer.commit()
+    (root / name / "template.obj").write_text(sphere_obj()[1])
+
+
 def write_dataset(
     root: Path,
     name: str,
@@ -108,62 +179,31 @@ def write_dataset(
     """Write one normalized dataset under ``root/name`` and return its folder."""
     rng = np.random.default_rng(seed)
     cast = np.eye(3) if cast is None else np.asarray(cast)
-    template_vertices, obj_text = sphere_obj()
-    dataset_dir = root / name
-    info = DatasetInfo(
-        name=name,
-        kind="flat",
-        template_mesh_id="sphere",
-        lighting="full-on",
-        provenance=Provenance(source_dataset="stage1 test sphere world", licence="CC0"),
-        config_fingerprint=fingerprint_config({"name": name, "seed": seed}),
-    )
-    writer = ShardWriter(dataset_dir, info)
-    writer.begin()
     focal = 2.2 * size
     K = np.array([[focal, 0, (size - 1) / 2], [0, focal, (size - 1) / 2], [0, 0, 1.0]])
-    for s in range(subjects):
-        subject = f"s{s:02d}"
-        scale = 1.0 + 0.1 * s
-        albedo = cast @ rng.uniform(0.3, 0.8, 3)
-        with writer.part(subject) as part:
-            part.add_mesh(
-                MeshRow(subject=subject, frame=0, vertices=(template_vertices * scale).astype(np.float32))
-            )
-            for c in range(cameras):
-                angle = 2 * np.pi * c / cameras
-                w2c = look_at_w2c(0.5 * np.array([np.sin(angle), 0.2, np.cos(angle)]))
-                image, mask = render_sphere(scale, albedo, K, w2c, size)
-                source = f"{subject}/cam{c:02d}.exr"
-                part.add(
-                    build_image_row(
-                        dataset=name,
-                        subject=subject,
-                        frame=0,
-                        camera=f"cam{c:02d}",
-                        pattern="full",
-                        split="train",
-                        K=K,
-                        w2c=w2c,
-                        image=encode_image(image),
-                        image_encoding="raw-f16",
-                        mask=encode_mask(mask),
-                        width=size,
-                        height=size,
-                        source=source,
-                        source_sha256=hashlib.sha256(source.encode()).hexdigest(),
+    fingerprint = {"name": name, "seed": seed}
+    with sphere_dataset(root, name, "flat", "full-on", "stage1 test sphere world", fingerprint) as writer:
+        for s in range(subjects):
+            subject = f"s{s:02d}"
+            scale = 1.0 + 0.1 * s
+            albedo = cast @ rng.uniform(0.3, 0.8, 3)
+            with writer.part(subject) as part:
+                part.add_mesh(sphere_mesh(subject, scale))
+                for c in range(cameras):
+                    angle = 2 * np.pi * c / cameras
+                    w2c = look_at_w2c(0.5 * np.array([np.sin(angle), 0.2, np.cos(angle)]))
+                    image, mask = render_sphere(scale, albedo, K, w2c, size)
+                    camera = f"cam{c:02d}"
+                    source = f"{subject}/{camera}.exr"
+                    part.add(
+                        sphere_image_row(name, subject, camera, "full", "train", K, w2c, image, mask, source)
                     )
-                )
-    writer.commit()
-    (dataset_dir / "template.obj").write_text(obj_text)
-    return dataset_dir
+    return root / name
 
 
 def tiny_stage1_preset(**changes):
     """A stage-1 preset sized for tests: UV 16², 32² crops, small decoders, a learning rate that shows
     progress within a few iterations."""
-    from relightanyone.model.networks.presets import get_preset
-
     settings = dict(
         uv_size=16,
         z_id_dim=8,
@@ -186,14 +226,38 @@ def tiny_stage1_preset(**changes):
     return get_preset("tiny").replace(**settings)
 
 
-def train_script(data: list[Path], out: Path, evaluate: bool = False, **preset_changes) -> str:
-    """Python source that trains a tiny stage-1 run; for subprocesses (SIGKILL, torchrun)."""
-    return (
-        "import sys; from pathlib import Path\n"
-        f"sys.path.insert(0, {str(Path(__file__).parents[1])!r})\n"
-        "from helpers.stage1_world import tiny_stage1_preset\n"
-        "from relightanyone.model.train.stage1 import Stage1Config, train_stage1\n"
-        f"preset = tiny_stage1_preset(**{preset_changes!r})\n"
-        f"train_stage1(Stage1Config([Path(p) for p in {[str(d) for d in data]!r}], Path({str(out)!r}), preset, "
-        f"progress=False, evaluate={evaluate!r}))\n"
-    )
+def train_script(
+    data: list[Path],
+    out: Path,
+    evaluate: bool = False,
+    kill_after_checkpoint: int | None = None,
+    **preset_changes,
+) -> str:
+    """Python source that trains a tiny stage-1 run; for subprocesses (SIGKILL, torchrun).
+
+    With ``kill_after_checkpoint`` N the script prints ``CHECKPOINT N`` once the checkpoint of iteration N is
+    saved and waits there to be killed (:func:`helpers.kill_handshake.kill_at`).
+    """
+    lines = [
+        IMPORT_HELPERS,
+        "from pathlib import Path",
+        "from helpers.stage1_world import tiny_stage1_preset",
+        "from relightanyone.model.train import stage1",
+    ]
+    if kill_after_checkpoint is not None:
+        lines += [
+            "from helpers.kill_handshake import block_until_killed",
+            "save_checkpoint = stage1.save_checkpoint",
+            "def save_then_wait(path, payload):",
+            "    save_checkpoint(path, payload)",
+            f"    if payload['iteration'] == {kill_after_checkpoint}:",
+            f"        block_until_killed('CHECKPOINT {kill_after_checkpoint}')",
+            "stage1.save_checkpoint = save_then_wait",
+        ]
+    lines += [
+        f"preset = tiny_stage1_preset(**{preset_changes!r})",
+        f"data = [Path(p) for p in {[str(d) for d in data]!r}]",
+        f"config = stage1.Stage1Config(data, Path({str(out)!r}), preset, progress=False, evaluate={evaluate!r})",
+        "stage1.train_stage1(config)",
+    ]
+    return "\n".join(lines) + "\n"
