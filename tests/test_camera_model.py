@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from relightanyone.render.camera import Cameras, rigid_inverse, similarity_scale
+from relightanyone.render.camera import (
+    Cameras,
+    crop_intrinsics,
+    resize_intrinsics,
+    rigid_inverse,
+    similarity_scale,
+)
 
 
 def random_rig(batch: int = 4, seed: int = 0, n_dist: int = 5, skew: bool = False) -> Cameras:
@@ -139,6 +145,25 @@ def test_crop_shifts_the_principal_point() -> None:
     torch.testing.assert_close(
         uv_both, (uv - torch.tensor([100.0, 40.0], dtype=torch.float64) + 0.5) * 0.5 - 0.5
     )
+
+
+def test_intrinsics_rules_known_values() -> None:
+    K = np.array([[800.0, 2.0, 319.5], [0.0, 820.0, 239.5], [0.0, 0.0, 1.0]])
+    # Resize 640x480 -> 320x120: the image centre stays the image centre, focals and skew scale per axis.
+    np.testing.assert_array_equal(
+        resize_intrinsics(K, 0.5, 0.25), [[400.0, 1.0, 159.5], [0.0, 205.0, 59.5], [0.0, 0.0, 1.0]]
+    )
+    np.testing.assert_array_equal(
+        crop_intrinsics(K, 100, 40), [[800.0, 2.0, 219.5], [0.0, 820.0, 199.5], [0.0, 0.0, 1.0]]
+    )
+    assert K[0, 2] == 319.5  # the input is not modified
+    # A tensor batch keeps its dtype and takes one factor (or origin) per camera.
+    batch = torch.tensor(np.stack([K, K]), dtype=torch.float32)
+    resized = resize_intrinsics(batch, torch.tensor([2.0, 0.5]), torch.tensor([2.0, 0.5]))
+    assert resized.dtype == torch.float32
+    assert resized[:, 0, 2].tolist() == [639.5, 159.5] and resized[:, 1, 1].tolist() == [1640.0, 410.0]
+    cropped = crop_intrinsics(batch, torch.tensor([0.0, 10.0]), torch.tensor([5.0, 0.0]))
+    assert cropped[:, 0, 2].tolist() == [319.5, 309.5] and cropped[:, 1, 2].tolist() == [234.5, 239.5]
 
 
 def test_transform_world_keeps_pixels_and_scales_depth() -> None:

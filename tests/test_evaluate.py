@@ -27,6 +27,7 @@ from relightanyone.evaluation.truth import (
     warp_native_to_row,
     world_to_normalized,
 )
+from relightanyone.render.camera import crop_intrinsics, resize_intrinsics
 from relightanyone.render.envmap import save_envmap
 
 
@@ -47,10 +48,7 @@ def test_warp_is_undistorted_crop_and_area_resize():
     native = cv2.GaussianBlur(rng.random((64, 80, 3)).astype(np.float32), (5, 5), 1.0)
     K_native = np.array([[100.0, 0, 39.5], [0, 100.0, 31.5], [0, 0, 1]])
     x0, y0, scale, width, height = 8, 4, 0.5, 24, 20
-    K_row = K_native.copy()
-    K_row[:2, 2] -= (x0, y0)
-    K_row[:2, :2] *= scale
-    K_row[:2, 2] = (K_row[:2, 2] + 0.5) * scale - 0.5
+    K_row = resize_intrinsics(crop_intrinsics(K_native, x0, y0), scale, scale)
     warped = warp_native_to_row(native, K_native, np.zeros(5), K_row, width, height)
     crop = native[y0 : y0 + 2 * height, x0 : x0 + 2 * width]
     expected = crop.reshape(height, 2, width, 2, 3).mean(axis=(1, 3))

@@ -11,6 +11,7 @@ import torch
 from relightanyone.align.colour import read_learned_colour_matrix
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import make_mesh_key
+from relightanyone.render.camera import resize_intrinsics
 
 
 @dataclass
@@ -35,14 +36,6 @@ class FitViews:
 
     def __len__(self) -> int:
         return self.images.shape[0]
-
-
-def scale_intrinsics(K: np.ndarray, scale: float) -> np.ndarray:
-    """K (3, 3) of an image resized by ``scale`` (DESIGN: ``f *= s``, ``c = (c + 0.5) s − 0.5``)."""
-    scaled = np.array(K, dtype=np.float64, copy=True)
-    scaled[:2, :2] *= scale
-    scaled[:2, 2] = (scaled[:2, 2] + 0.5) * scale - 0.5
-    return scaled
 
 
 def load_fit_views(
@@ -111,7 +104,7 @@ def load_fit_views(
             mask = cv2.resize(mask.astype(np.float32), size, interpolation=cv2.INTER_AREA)
         images.append(np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32))
         masks.append(np.asarray(mask, dtype=np.float32)[None])
-        Ks.append(scale_intrinsics(row.K, image_scale))
+        Ks.append(resize_intrinsics(row.K, image_scale, image_scale))
     tracked = dataset.meshes().get(make_mesh_key(subject, frame))
     return FitViews(
         images=torch.from_numpy(np.stack(images)),

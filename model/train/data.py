@@ -26,10 +26,10 @@ from relightanyone.model.train.sampling import (
     CROP_STREAM,
     choose_crop,
     crop_array,
-    crop_intrinsics,
     held_out_cameras,
     iteration_generator,
 )
+from relightanyone.render.camera import crop_intrinsics
 from relightanyone.render.mesh import load_obj
 
 FULL_ON_PATTERN = "full"
@@ -196,7 +196,7 @@ class Stage1Data:
                 box = choose_crop(sample["mask"][0], crop_size, rng)
                 sample["image"] = crop_array(sample["image"], box)
                 sample["mask"] = crop_array(sample["mask"], box)
-                sample["K"] = crop_intrinsics(sample["K"], box)
+                sample["K"] = crop_intrinsics(sample["K"], box.x0, box.y0)
             samples.append(sample)
         shapes = {s["image"].shape for s in samples}
         if len(shapes) > 1:

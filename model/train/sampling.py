@@ -97,14 +97,6 @@ def crop_array(array: np.ndarray, box: CropBox) -> np.ndarray:
     return out
 
 
-def crop_intrinsics(K: np.ndarray, box: CropBox) -> np.ndarray:
-    """K (3, 3) of the stored image -> K of the crop (principal point shifted by the crop origin)."""
-    cropped = np.array(K, dtype=np.float64, copy=True)
-    cropped[0, 2] -= box.x0
-    cropped[1, 2] -= box.y0
-    return cropped
-
-
 def held_out_cameras(cameras: list[str], count: int) -> set[str]:
     """``count`` cameras spread evenly over the sorted camera names, never all of them."""
     ordered = sorted(set(cameras))

@@ -76,9 +76,9 @@ from relightanyone.model.train.sampling import (
     background_colours,
     choose_crop,
     crop_array,
-    crop_intrinsics,
     iteration_generator,
 )
+from relightanyone.render.camera import crop_intrinsics
 from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
 from relightanyone.render.mesh import load_obj
 from relightanyone.render.sh import lambertian_transfer
@@ -217,7 +217,7 @@ class OlatFrames:
             )
             images.append(crop_array(image, box))
             masks.append(crop_array(mask[None].astype(np.float32), box))
-            Ks.append(crop_intrinsics(row.K, box))
+            Ks.append(crop_intrinsics(row.K, box.x0, box.y0))
             w2cs.append(row.w2c)
         light_positions, light_intensities = batch_lights(self.rig, [list(v.lights) for v in views])
         for sample, view in enumerate(views):
