@@ -386,6 +386,28 @@ class Cameras:
         return points
 
 
+def look_at_w2c(eye: Any, target: Any, up: Any) -> np.ndarray:
+    """(4, 4) float64 world-to-camera matrix (OpenCV axes) of a camera at ``eye`` looking at ``target``.
+
+    ``up`` is the world direction that points up in the image (towards smaller v); it need not be
+    perpendicular to the view direction, only not parallel to it. eye, target, up: (3,).
+    """
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    forward = target - eye
+    forward = forward / np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    length = np.linalg.norm(right)
+    if not length > 1e-12:
+        raise ValueError(f"look-at: up {up.tolist()} is parallel to the view direction {forward.tolist()}")
+    right = right / length
+    down = np.cross(forward, right)
+    rotation = np.stack([right, down, forward])  # rows: camera x, y, z in world coordinates
+    w2c = np.eye(4)
+    w2c[:3, :3] = rotation
+    w2c[:3, 3] = -rotation @ eye
+    return w2c
+
+
 def _copy_intrinsics(K: Any) -> Any:
     """A tensor's clone (same dtype and device), or anything else as a new float64 numpy array."""
     if isinstance(K, torch.Tensor):

@@ -13,6 +13,7 @@ import torch
 
 from relightanyone.align.colour import linear_to_srgb
 from relightanyone.model.networks.gaussians import Gaussians
+from relightanyone.render.camera import look_at_w2c
 from relightanyone.render.rasterize import rasterize
 
 
@@ -63,20 +64,6 @@ def render_cameras(
         height,
     )
     return image
-
-
-def look_at_w2c(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """(4, 4) OpenCV world-to-camera (x right, y down, z forward) of a camera at ``eye`` looking at ``target``."""
-    forward = target - eye
-    forward = forward / np.linalg.norm(forward)
-    right = np.cross(forward, up)
-    right = right / np.linalg.norm(right)
-    down = np.cross(forward, right)
-    rotation = np.stack([right, down, forward])  # rows: camera axes in world coordinates
-    w2c = np.eye(4)
-    w2c[:3, :3] = rotation
-    w2c[:3, 3] = -rotation @ eye
-    return w2c
 
 
 def orbit_cameras(

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from relightanyone.format.codecs import encode_image, encode_mask
-from relightanyone.format.examples import look_at_w2c
 from relightanyone.format.schema import DatasetInfo, MeshRow, Provenance, build_image_row, fingerprint_config
 from relightanyone.format.shards import ShardWriter
+from relightanyone.render.camera import look_at_w2c
 
 RADIUS = 0.1
 
@@ -132,7 +132,9 @@ def write_dataset(
             )
             for c in range(cameras):
                 angle = 2 * np.pi * c / cameras
-                w2c = look_at_w2c(0.5 * np.array([np.sin(angle), 0.2, np.cos(angle)]))
+                w2c = look_at_w2c(
+                    0.5 * np.array([np.sin(angle), 0.2, np.cos(angle)]), np.zeros(3), [0.0, 1.0, 0.0]
+                )
                 image, mask = render_sphere(scale, albedo, K, w2c, size)
                 source = f"{subject}/cam{c:02d}.exr"
                 part.add(
