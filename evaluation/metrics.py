@@ -11,6 +11,8 @@ from pathlib import Path
 
 import torch
 
+from relightanyone.align.colour import linear_to_srgb
+
 SSIM_WINDOW = 11
 MIN_MSE = 1e-12  # PSNR of identical images stays finite (120 dB)
 
@@ -88,12 +90,6 @@ class LpipsMetric:
         # LPIPS was trained on display images in [-1, 1].
         to_input = lambda x: linear_to_srgb(x.clamp(0, 1) * binary) * 2 - 1  # noqa: E731
         return self.network(to_input(prediction), to_input(target)).reshape(-1)
-
-
-def linear_to_srgb(image: torch.Tensor) -> torch.Tensor:
-    """sRGB encoding (IEC 61966-2-1) of linear values in [0, 1], any shape."""
-    x = image.clamp(0, 1)
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=1e-12).pow(1 / 2.4) - 0.055)
 
 
 def image_metrics(

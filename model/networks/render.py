@@ -1,4 +1,4 @@
-"""Rendering stage-1 Gaussians into cameras, orbit cameras, and display images.
+"""Rendering stage-1 Gaussians into cameras, orbit cameras, comparison strips and image grids.
 
 Renders go through :func:`relightanyone.render.rasterize.rasterize` (pure PyTorch / C++ on CPU, gsplat on
 CUDA) with a black background: training and metrics only look at masked pixels.
@@ -11,7 +11,6 @@ import math
 import numpy as np
 import torch
 
-from relightanyone.align.colour import linear_to_srgb
 from relightanyone.model.networks.gaussians import Gaussians
 from relightanyone.render.camera import look_at_w2c
 from relightanyone.render.rasterize import rasterize
@@ -84,13 +83,6 @@ def orbit_cameras(
         )
         poses.append(look_at_w2c(centre + offset, centre, np.array([0.0, 1.0, 0.0])))
     return np.repeat(np.asarray(K, dtype=np.float64)[None], count, axis=0), np.stack(poses)
-
-
-def to_display(image: torch.Tensor) -> np.ndarray:
-    """Linear (3, H, W) -> sRGB-encoded uint8 (H, W, 3) for PNGs and TensorBoard."""
-
-    encoded = linear_to_srgb(image.detach().clamp(0.0, 1.0).float())
-    return (encoded.clamp(0.0, 1.0).permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
 
 
 def comparison_strip(target: torch.Tensor, render: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

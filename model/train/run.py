@@ -14,10 +14,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relightanyone.align.colour import linear_to_display
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.model.networks.gaussians import Gaussians, TexelBinding
 from relightanyone.model.networks.presets import Stage1Preset
-from relightanyone.model.networks.render import grid, orbit_cameras, save_png, to_display
+from relightanyone.model.networks.render import grid, orbit_cameras, save_png
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from relightanyone.model.train.stage1 import RUN_INFO_NAME, TEMPLATE_NAME
@@ -200,7 +201,7 @@ def render_subject(
     safe_subject = run.subjects[subject_index].replace("/", "_")
     for name, image in zip(names, images, strict=True):
         path = out_dir / f"{safe_subject}_{lighting}_{name}.png"
-        save_png(path, to_display(image[0]))
+        save_png(path, linear_to_display(image[0]).transpose(1, 2, 0))
         files.append(str(path))
     report = {
         "subject": run.subjects[subject_index],
@@ -260,7 +261,7 @@ def lighting_alignment_grid(run: Stage1Run, out_path: Path) -> dict:
                 if lighting == dataset
                 else render_with_alpha(gaussians, K, w2c, width, height)
             )
-            display = to_display(image[0])
+            display = linear_to_display(image[0]).transpose(1, 2, 0)
             size = size or display.shape[:2]
             row.append(_fit(display, size))
             if lighting != dataset:

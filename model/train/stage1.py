@@ -25,9 +25,10 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 
+from relightanyone.align.colour import linear_to_display
 from relightanyone.model.networks.gaussians import TexelBinding
 from relightanyone.model.networks.presets import Stage1Preset
-from relightanyone.model.networks.render import comparison_strip, render_gaussians, to_display
+from relightanyone.model.networks.render import comparison_strip, render_gaussians
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.train.checkpoint import (
     CHECKPOINT_NAME,
@@ -263,7 +264,9 @@ def train_stage1(config: Stage1Config) -> dict:
                 writer.add_scalar("time/seconds_per_iteration", step_seconds / steps, done)
             if done % preset.image_every == 0 or done == preset.iterations:
                 strip = comparison_strip(batch["image"][0], render[0].detach(), batch["mask"][0])
-                writer.add_image("train/truth|render|error", to_display(strip), done, dataformats="HWC")
+                writer.add_image(
+                    "train/truth|render|error", linear_to_display(strip), done, dataformats="CHW"
+                )
         if group.is_main and (done % preset.checkpoint_every == 0 or done == preset.iterations):
             save_checkpoint(
                 checkpoint_path, _checkpoint_payload(model, optimizer, done, preset, data, config)
