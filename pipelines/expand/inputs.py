@@ -6,8 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from relightanyone.format.arrow_io import sha256_file
 from relightanyone.format.schema import Provenance
+from relightanyone.hashing import sha256_file
 from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.pipelines.expand.task import cache_relightable_model
 

@@ -21,7 +21,6 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from relightanyone.format.arrow_io import sha256_file
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import (
     MANIFEST_NAME,
@@ -31,6 +30,7 @@ from relightanyone.format.schema import (
     fingerprint_config,
 )
 from relightanyone.format.shards import ShardWriter
+from relightanyone.hashing import sha256_file
 from relightanyone.model.fit.fitter import FitSettings
 from relightanyone.pipelines.expand.executors import run_expand_tasks
 from relightanyone.pipelines.expand.inputs import (
