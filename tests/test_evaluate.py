@@ -19,7 +19,6 @@ from helpers.sphere_world import (
 )
 
 from relightanyone.evaluation.cases import relight_weights
-from relightanyone.evaluation.metrics import masked_psnr, masked_rmse, masked_ssim_score
 from relightanyone.evaluation.truth import (
     WorldAnswers,
     match_lights,
@@ -27,6 +26,7 @@ from relightanyone.evaluation.truth import (
     warp_native_to_row,
     world_to_normalized,
 )
+from relightanyone.model.metrics import masked_psnr, masked_rmse, masked_ssim
 from relightanyone.render.camera import crop_intrinsics, resize_intrinsics
 from relightanyone.render.envmap import save_envmap
 
@@ -39,8 +39,8 @@ def test_metrics_on_known_errors():
     prediction[:, :, :2] = 0.9  # outside the mask: ignored
     assert torch.allclose(masked_rmse(prediction, target, mask), torch.full((2,), 0.1), atol=1e-5)
     assert torch.allclose(masked_psnr(prediction, target, mask), torch.full((2,), 20.0), atol=1e-3)
-    assert torch.allclose(masked_ssim_score(target, target, mask), torch.ones(2), atol=1e-5)
-    assert (masked_ssim_score(target + 0.2 * torch.randn_like(target) * mask, target, mask) < 0.9).all()
+    assert torch.allclose(masked_ssim(target, target, mask), torch.ones(2), atol=1e-5)
+    assert (masked_ssim(target + 0.2 * torch.randn_like(target) * mask, target, mask) < 0.9).all()
 
 
 def test_warp_is_undistorted_crop_and_area_resize():
