@@ -2,8 +2,8 @@
 
 Every metric compares linear RGB images clipped to [0, 1] (peak 1) inside a mask: the pixels of the subject
 in the ground truth. Images are ``(B, 3, H, W)``, masks ``(B, 1, H, W)`` in [0, 1]; each metric returns
-``(B,)``. The evaluation's tables are scored by these functions. Training objectives are in
-:mod:`relightanyone.model.train.losses`.
+``(B,)``. Stage 1's held-out views and the evaluation's tables are scored by these functions. Training
+objectives are in :mod:`relightanyone.model.train.losses`.
 """
 
 from __future__ import annotations

@@ -43,9 +43,9 @@ from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoin
 from relightanyone.model.train.losses import (
     composite_over_background,
     masked_l1,
-    masked_ssim,
     offset_l2,
     scale_bound_loss,
+    ssim_loss,
     vertex_l2,
 )
 from relightanyone.model.train.run import load_run
@@ -339,7 +339,7 @@ class Fitter:
             mask = torch.ones_like(mask)
         terms = {
             "l1": masked_l1(render, target, mask).mean(),
-            "ssim": (1.0 - masked_ssim(render, target, mask)).mean(),
+            "ssim": ssim_loss(render, target, mask).mean(),
         }
         if self.views.tracked_vertices is not None:
             terms["geometry"] = vertex_l2(vertices, self.views.tracked_vertices[None]).mean()

@@ -64,10 +64,10 @@ from relightanyone.model.train.checkpoint import (
 from relightanyone.model.train.losses import (
     composite_over_background,
     masked_l1,
-    masked_ssim,
     offset_l2,
     offset_weight,
     scale_bound_loss,
+    ssim_loss,
     vertex_l2,
 )
 from relightanyone.model.train.run import load_run
@@ -417,7 +417,7 @@ class Stage2Trainer:
         )
         terms = {
             "l1": masked_l1(compared, image, mask),
-            "ssim": 1.0 - masked_ssim(compared, image, mask),
+            "ssim": ssim_loss(compared, image, mask),
             "negative_diffuse": negative_diffuse_loss(relit.diffuse),
             "monochrome": monochrome_transfer_loss(params.transfer),
             "normal": normal_residual_loss(params.normal_residual),
