@@ -19,7 +19,12 @@ from relightanyone.format.reader import NormalizedDataset
 from relightanyone.model.fit.avatar import check_pinhole_cameras
 from relightanyone.model.fit.fitter import FitSettings, Fitter
 from relightanyone.model.fit.views import FitViews
-from relightanyone.model.networks.gaussians import Gaussians, TexelBinding, assemble_gaussians, gather_texels
+from relightanyone.model.networks.gaussians import (
+    Gaussians,
+    assemble_gaussians,
+    gather_texels,
+    load_template_binding,
+)
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
 from relightanyone.model.networks.reflectance import (
     RelightParams,
@@ -32,9 +37,7 @@ from relightanyone.model.networks.stage2 import texel_mesh_normals, view_directi
 from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from relightanyone.model.train.stage2 import TEMPLATE_NAME
 from relightanyone.render.lights import PointLights, full_on_rig_from_table, olat_rig_from_table
-from relightanyone.render.mesh import load_obj
 from relightanyone.render.rasterize import rasterize
-from relightanyone.render.uv_binding import UVBinding
 
 
 @dataclass
@@ -63,15 +66,9 @@ def load_single_stage_run(run: str | Path) -> SingleStageRun:
     info = json.loads((run / "run.json").read_text())
     stage1_preset = Stage1Preset.from_json(checkpoint["stage1_preset"])
     preset = Stage2Preset.from_json(checkpoint["preset"])
-    mesh = load_obj(run / TEMPLATE_NAME)
-    uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, stage1_preset.uv_size)
-    binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
+    template_vertices, binding = load_template_binding(run / TEMPLATE_NAME, stage1_preset.uv_size)
     model = SingleStageModel(
-        stage1_preset,
-        preset.sh_order,
-        torch.from_numpy(mesh.vertices).float(),
-        binding,
-        len(checkpoint["subjects"]),
+        stage1_preset, preset.sh_order, template_vertices, binding, len(checkpoint["subjects"])
     )
     model.load_state_dict(checkpoint["model"])
     dataset_path = Path(info["dataset"]["path"])

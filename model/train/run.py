@@ -16,15 +16,13 @@ import torch
 
 from relightanyone.align.colour import linear_to_display
 from relightanyone.format.reader import NormalizedDataset
-from relightanyone.model.networks.gaussians import Gaussians, TexelBinding
+from relightanyone.model.networks.gaussians import Gaussians, load_template_binding
 from relightanyone.model.networks.presets import Stage1Preset
 from relightanyone.model.networks.render import grid, orbit_cameras, save_png
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from relightanyone.model.train.stage1 import RUN_INFO_NAME, TEMPLATE_NAME
-from relightanyone.render.mesh import load_obj
 from relightanyone.render.rasterize import rasterize
-from relightanyone.render.uv_binding import UVBinding
 
 FOREGROUND_ALPHA = 0.5
 ORBIT_ELEVATION_DEG = 10.0
@@ -73,15 +71,9 @@ def load_run(run_dir: Path) -> Stage1Run:
     info = json.loads(info_path.read_text())
     checkpoint = load_checkpoint(run_dir / CHECKPOINT_NAME)
     preset = Stage1Preset.from_json(checkpoint["preset"])
-    mesh = load_obj(run_dir / TEMPLATE_NAME)
-    uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, preset.uv_size)
-    binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
+    template_vertices, binding = load_template_binding(run_dir / TEMPLATE_NAME, preset.uv_size)
     model = Stage1Model(
-        preset,
-        torch.from_numpy(mesh.vertices).float(),
-        binding,
-        len(checkpoint["subjects"]),
-        len(checkpoint["datasets"]),
+        preset, template_vertices, binding, len(checkpoint["subjects"]), len(checkpoint["datasets"])
     )
     model.load_state_dict(checkpoint["model"])
     model.eval()

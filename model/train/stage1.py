@@ -26,7 +26,7 @@ import torch
 import torch.distributed as dist
 
 from relightanyone.align.colour import linear_to_display
-from relightanyone.model.networks.gaussians import TexelBinding
+from relightanyone.model.networks.gaussians import load_template_binding
 from relightanyone.model.networks.presets import Stage1Preset
 from relightanyone.model.networks.render import comparison_strip, render_gaussians
 from relightanyone.model.networks.stage1 import Stage1Model
@@ -42,8 +42,6 @@ from relightanyone.model.train.held_out import evaluate_held_out
 from relightanyone.model.train.losses import composite_over_background, offset_weight, stage1_loss
 from relightanyone.model.train.memory import estimate_training_memory, format_memory
 from relightanyone.model.train.sampling import background_colours, balanced_batch
-from relightanyone.render.mesh import load_obj
-from relightanyone.render.uv_binding import UVBinding
 
 RUN_INFO_NAME = "run.json"
 METRICS_NAME = "metrics.json"
@@ -108,13 +106,9 @@ def build_model(
     unknown = sorted(set(uncalibrated) - set(data.names))
     if unknown:
         raise ValueError(f"--uncalibrated names {unknown} are not among the datasets {data.names}")
-    mesh = load_obj(template_path)
-    uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, preset.uv_size)
-    binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
+    template_vertices, binding = load_template_binding(template_path, preset.uv_size)
     flags = torch.tensor([name in uncalibrated for name in data.names])
-    return Stage1Model(
-        preset, torch.from_numpy(mesh.vertices).float(), binding, len(data.subjects), len(data.names), flags
-    )
+    return Stage1Model(preset, template_vertices, binding, len(data.subjects), len(data.names), flags)
 
 
 def average_gradients(model: torch.nn.Module, world_size: int) -> None:

@@ -36,7 +36,7 @@ import torch
 from relightanyone.align.colour import read_learned_colour_matrix
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import make_mesh_key
-from relightanyone.model.networks.gaussians import TexelBinding
+from relightanyone.model.networks.gaussians import load_template_binding
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
 from relightanyone.model.networks.reflectance import (
     FULL_ON_PATTERN,
@@ -80,10 +80,8 @@ from relightanyone.model.train.sampling import (
 )
 from relightanyone.render.camera import crop_intrinsics
 from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
-from relightanyone.render.mesh import load_obj
 from relightanyone.render.sh import lambertian_transfer
 from relightanyone.render.shading import point_light_sh
-from relightanyone.render.uv_binding import UVBinding
 
 RUN_INFO_NAME = "run.json"
 METRICS_NAME = "metrics.json"
@@ -299,17 +297,9 @@ class Stage2Trainer:
             raise FileNotFoundError(
                 f"{self.template_path}: template mesh missing; ingest writes it beside manifest.json"
             )
-        mesh = load_obj(self.template_path)
-        uv = UVBinding.from_mesh(
-            mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, self.stage1_preset.uv_size
-        )
-        binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
+        template_vertices, binding = load_template_binding(self.template_path, self.stage1_preset.uv_size)
         self.trainable = SingleStageModel(
-            self.stage1_preset,
-            self.preset.sh_order,
-            torch.from_numpy(mesh.vertices).float(),
-            binding,
-            len(self.frames.subjects),
+            self.stage1_preset, self.preset.sh_order, template_vertices, binding, len(self.frames.subjects)
         ).to(self.device)
         self.albedo_per_colour = None
         self.trainable.albedo_scale.copy_(self._albedo_scale_from_images())
