@@ -32,12 +32,12 @@ from relightanyone.model.networks.reflectance import (
     camera_centres,
     relight,
 )
+from relightanyone.model.networks.render import render_views
 from relightanyone.model.networks.single_stage import SingleStageModel
 from relightanyone.model.networks.stage2 import texel_mesh_normals, view_directions
 from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from relightanyone.model.train.stage2 import TEMPLATE_NAME
 from relightanyone.render.lights import PointLights, full_on_rig_from_table, olat_rig_from_table
-from relightanyone.render.rasterize import rasterize
 
 
 @dataclass
@@ -158,18 +158,7 @@ class SingleStageAvatar:
             self.preset.lobe_normalization,
             self.preset.inverse_square,
         ).colour
-        image, _, _ = rasterize(
-            gaussians.means[0],
-            gaussians.quats[0],
-            gaussians.scales[0],
-            gaussians.opacities[0],
-            colours,
-            w2c,
-            K,
-            width,
-            height,
-            background=background,
-        )
+        image, _ = render_views(gaussians, K, w2c, width, height, colours=colours, background=background)
         return image
 
 

@@ -37,6 +37,7 @@ from relightanyone.model.fit.views import FitViews, load_fit_views
 from relightanyone.model.networks.gaussians import Gaussians
 from relightanyone.model.networks.presets import Stage2Preset
 from relightanyone.model.networks.reflectance import RelightParams, camera_centres, relight
+from relightanyone.model.networks.render import render_views
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.networks.stage2 import Stage2Model, head_frame, texel_mesh_normals
 from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
@@ -51,7 +52,6 @@ from relightanyone.model.train.losses import (
 from relightanyone.model.train.run import load_run
 from relightanyone.model.train.sampling import iteration_generator
 from relightanyone.render.lights import PointLights, full_on_rig_from_table, olat_rig_from_table
-from relightanyone.render.rasterize import rasterize
 
 VIEW_STREAM = 10  # generator streams of the fit (views per step, locality codes, backgrounds)
 LOCALITY_STREAM = 11
@@ -305,17 +305,7 @@ class Fitter:
         )
         height, width = self.views.images.shape[-2:]
         # One splat call: the geometry is shared by the views, the relit colours are per camera (v, N, 3).
-        image, alpha, _ = rasterize(
-            gaussians.means[0],
-            gaussians.quats[0],
-            gaussians.scales[0],
-            gaussians.opacities[0],
-            relit.colour,
-            w2c,
-            K,
-            width,
-            height,
-        )
+        image, alpha = render_views(gaussians, K, w2c, width, height, colours=relit.colour)
         return image, alpha, vertices, gaussians
 
     def step_backgrounds(self, step: int, count: int, stream_offset: int = 0) -> torch.Tensor:

@@ -30,39 +30,43 @@ def render_gaussians(
         raise ValueError(f"{batch} Gaussian sets but {K.shape[0]} intrinsics and {w2c.shape[0]} poses")
     images, alphas = [], []
     for index in range(batch):
-        image, alpha, _ = rasterize(
-            gaussians.means[index],
-            gaussians.quats[index],
-            gaussians.scales[index],
-            gaussians.opacities[index],
-            gaussians.colours[index],
-            w2c[index : index + 1],
-            K[index : index + 1],
-            width,
-            height,
+        image, alpha = render_views(
+            gaussians, K[index : index + 1], w2c[index : index + 1], width, height, index
         )
         images.append(image)
         alphas.append(alpha)
     return torch.cat(images), torch.cat(alphas)
 
 
-def render_cameras(
-    gaussians: Gaussians, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int
-) -> torch.Tensor:
-    """Render one Gaussian set (batch of 1) into C cameras: K (C, 3, 3), w2c (C, 4, 4) -> (C, 3, H, W)."""
+def render_views(
+    gaussians: Gaussians,
+    K: torch.Tensor,
+    w2c: torch.Tensor,
+    width: int,
+    height: int,
+    sample: int = 0,
+    colours: torch.Tensor | None = None,
+    background: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Render Gaussian set ``sample`` of ``gaussians`` into C cameras: K (C, 3, 3), w2c (C, 4, 4).
 
-    image, _, _ = rasterize(
-        gaussians.means[0],
-        gaussians.quats[0],
-        gaussians.scales[0],
-        gaussians.opacities[0],
-        gaussians.colours[0],
+    colours: (C, N, F) per-camera features (e.g. relit colours) in place of the set's own (N, 3) colours;
+    background: (F,) or (C, F), black by default. Returns image (C, F, H, W) and alpha (C, 1, H, W).
+    """
+
+    image, alpha, _ = rasterize(
+        gaussians.means[sample],
+        gaussians.quats[sample],
+        gaussians.scales[sample],
+        gaussians.opacities[sample],
+        gaussians.colours[sample] if colours is None else colours,
         w2c,
         K,
         width,
         height,
+        background=background,
     )
-    return image
+    return image, alpha
 
 
 def orbit_cameras(

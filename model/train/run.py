@@ -18,11 +18,10 @@ from relightanyone.align.colour import linear_to_display
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.model.networks.gaussians import Gaussians, load_template_binding
 from relightanyone.model.networks.presets import Stage1Preset
-from relightanyone.model.networks.render import grid, orbit_cameras, save_png
+from relightanyone.model.networks.render import grid, orbit_cameras, render_views, save_png
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.train.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from relightanyone.model.train.stage1 import RUN_INFO_NAME, TEMPLATE_NAME
-from relightanyone.render.rasterize import rasterize
 
 FOREGROUND_ALPHA = 0.5
 ORBIT_ELEVATION_DEG = 10.0
@@ -134,20 +133,14 @@ def mean_foreground_colour(images: torch.Tensor, alphas: torch.Tensor) -> np.nda
 
 @torch.no_grad()
 def render_with_alpha(gaussians: Gaussians, K: np.ndarray, w2c: np.ndarray, width: int, height: int):
-    """Render one Gaussian set into C cameras: (images (C, 3, H, W), alphas (C, 1, H, W))."""
+    """Render one Gaussian set into C cameras given as numpy K (C, 3, 3) and w2c (C, 4, 4).
 
-    image, alpha, _ = rasterize(
-        gaussians.means[0],
-        gaussians.quats[0],
-        gaussians.scales[0],
-        gaussians.opacities[0],
-        gaussians.colours[0],
-        torch.tensor(w2c, dtype=torch.float32),
-        torch.tensor(K, dtype=torch.float32),
-        width,
-        height,
+    Returns images (C, 3, H, W) and alphas (C, 1, H, W).
+    """
+
+    return render_views(
+        gaussians, torch.tensor(K, dtype=torch.float32), torch.tensor(w2c, dtype=torch.float32), width, height
     )
-    return image, alpha
 
 
 def render_subject(
