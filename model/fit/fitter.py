@@ -48,6 +48,7 @@ from relightanyone.model.train.losses import (
     scale_bound_loss,
     ssim_loss,
     vertex_l2,
+    weighted_sum,
 )
 from relightanyone.model.train.run import load_run
 from relightanyone.model.train.sampling import iteration_generator
@@ -336,21 +337,19 @@ class Fitter:
         return terms, vertices, gaussians
 
     def data_loss(self, terms: dict[str, torch.Tensor]) -> torch.Tensor:
-        total = self.weights.l1 * terms["l1"] + self.weights.ssim * terms["ssim"]
-        if "geometry" in terms:
-            total = total + self.weights.geometry * terms["geometry"]
-        return total
+        weights = {"l1": self.weights.l1, "ssim": self.weights.ssim, "geometry": self.weights.geometry}
+        return weighted_sum(terms, {name: weight for name, weight in weights.items() if name in terms})
 
     def inversion_loss(self, view_index: list[int], step: int = 0) -> tuple[torch.Tensor, dict[str, float]]:
         """``10 L1 + 0.2 (1 − SSIM) + 0.4 vertex L2 + λ_id ‖z_id‖²`` and its logged terms."""
         terms, _, _ = self.data_terms(view_index, self.step_backgrounds(step, len(view_index)))
         terms["identity"] = self.z_id.pow(2).sum()
         terms["lighting_prior"] = (self.log_intensities - self.log_intensities_start).pow(2).mean()
-        total = (
-            self.data_loss(terms)
-            + self.settings.identity_weight * terms["identity"]
-            + self.settings.lighting_prior_weight * terms["lighting_prior"]
-        )
+        priors = {
+            "identity": self.settings.identity_weight,
+            "lighting_prior": self.settings.lighting_prior_weight,
+        }
+        total = weighted_sum(terms, priors, self.data_loss(terms))
         return total, _logged(terms, total)
 
     def finetune_loss(
@@ -360,10 +359,8 @@ class Fitter:
         terms, _, gaussians = self.data_terms(view_index, self.step_backgrounds(step, len(view_index), 1))
         terms["scale"] = scale_bound_loss(gaussians.scales_preclip).mean()
         terms["offset"] = offset_l2(gaussians.offsets).mean()
-        total = (
-            self.data_loss(terms)
-            + self.weights.scale * terms["scale"]
-            + self.weights.offset_end * terms["offset"]
+        total = weighted_sum(
+            terms, {"scale": self.weights.scale, "offset": self.weights.offset_end}, self.data_loss(terms)
         )
         if locality_weight > 0:
             rng = iteration_generator(self.settings.seed, step, LOCALITY_STREAM)

@@ -120,6 +120,36 @@ def offset_weight(iteration: int, weights: LossWeights, anneal_iterations: int) 
     return float(weights.offset_start * (weights.offset_end / weights.offset_start) ** fraction)
 
 
+def weighted_sum(
+    terms: dict[str, torch.Tensor], weights: dict[str, float], total: torch.Tensor | None = None
+) -> torch.Tensor:
+    """``total + Σ weights[name] · terms[name]``, added left to right in the order of ``weights``."""
+    for name, weight in weights.items():
+        term = weight * terms[name]
+        total = term if total is None else total + term
+    return total
+
+
+def geometry_terms(
+    vertices: torch.Tensor,
+    tracked_vertices: torch.Tensor,
+    gaussians: Gaussians,
+    has_mesh: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """The geometry terms of the stage-1 objective, (B,) each: ``geometry`` (vertex L2), ``scale`` (scale
+    bound) and ``offset`` (‖δt‖²). Shapes as :func:`stage1_loss`."""
+    return {
+        "geometry": vertex_l2(vertices, tracked_vertices, has_mesh),
+        "scale": scale_bound_loss(gaussians.scales_preclip),
+        "offset": offset_l2(gaussians.offsets),
+    }
+
+
+def geometry_weights(weights: LossWeights, offset_lambda: float) -> dict[str, float]:
+    """The weights of :func:`geometry_terms`: vertex L2, scale bound, then λ_t."""
+    return {"geometry": weights.geometry, "scale": weights.scale, "offset": offset_lambda}
+
+
 def stage1_loss(
     render: torch.Tensor,
     target: torch.Tensor,
@@ -138,17 +168,10 @@ def stage1_loss(
     terms = {
         "l1": masked_l1(render, target, mask),
         "ssim": ssim_loss(render, target, mask),
-        "geometry": vertex_l2(vertices, tracked_vertices, has_mesh),
-        "scale": scale_bound_loss(gaussians.scales_preclip),
-        "offset": offset_l2(gaussians.offsets),
+        **geometry_terms(vertices, tracked_vertices, gaussians, has_mesh),
     }
-    per_sample = (
-        weights.l1 * terms["l1"]
-        + weights.ssim * terms["ssim"]
-        + weights.geometry * terms["geometry"]
-        + weights.scale * terms["scale"]
-        + offset_lambda * terms["offset"]
-    )
+    image_weights = {"l1": weights.l1, "ssim": weights.ssim}
+    per_sample = weighted_sum(terms, image_weights | geometry_weights(weights, offset_lambda))
     total = per_sample.mean()
     logged = {name: float(value.detach().mean()) for name, value in terms.items()}
     logged["total"] = float(total.detach())

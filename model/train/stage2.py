@@ -63,12 +63,12 @@ from relightanyone.model.train.checkpoint import (
 )
 from relightanyone.model.train.losses import (
     composite_over_background,
+    geometry_terms,
+    geometry_weights,
     masked_l1,
-    offset_l2,
     offset_weight,
-    scale_bound_loss,
     ssim_loss,
-    vertex_l2,
+    weighted_sum,
 )
 from relightanyone.model.train.run import load_run
 from relightanyone.model.train.sampling import (
@@ -412,12 +412,15 @@ class Stage2Trainer:
             "monochrome": monochrome_transfer_loss(params.transfer),
             "normal": normal_residual_loss(params.normal_residual),
         }
-        per_sample = (
-            weights.l1 * terms["l1"]
-            + weights.ssim * terms["ssim"]
-            + weights.negative_diffuse * terms["negative_diffuse"]
-            + weights.monochrome * terms["monochrome"]
-            + normal_lambda * terms["normal"]
+        per_sample = weighted_sum(
+            terms,
+            {
+                "l1": weights.l1,
+                "ssim": weights.ssim,
+                "negative_diffuse": weights.negative_diffuse,
+                "monochrome": weights.monochrome,
+                "normal": normal_lambda,
+            },
         )
         logged = {"normal_lambda": normal_lambda}
         if self.albedo_per_colour is not None:
@@ -432,16 +435,9 @@ class Stage2Trainer:
             logged["albedo_lambda"] = albedo_lambda
         if self.config.single_stage:
             geometry = self.stage1_preset.loss
-            terms["geometry"] = vertex_l2(vertices, batch["tracked"], batch["has_mesh"])
-            terms["scale"] = scale_bound_loss(gaussians.scales_preclip)
-            terms["offset"] = offset_l2(gaussians.offsets)
+            terms.update(geometry_terms(vertices, batch["tracked"], gaussians, batch["has_mesh"]))
             offset_lambda = offset_weight(iteration, geometry, self.stage1_preset.offset_anneal_iterations)
-            per_sample = (
-                per_sample
-                + geometry.geometry * terms["geometry"]
-                + geometry.scale * terms["scale"]
-                + offset_lambda * terms["offset"]
-            )
+            per_sample = weighted_sum(terms, geometry_weights(geometry, offset_lambda), per_sample)
         total = per_sample.mean()
         logged.update({name: float(value.detach().mean()) for name, value in terms.items()})
         logged["total"] = float(total.detach())
