@@ -115,6 +115,20 @@ def linear_to_srgb(x: Any) -> Any:
     return colour.cctf_encoding(np.asarray(x, dtype=np.float64), function="sRGB")
 
 
+def linear_to_display(image: Any, exposure: float = 1.0) -> np.ndarray:
+    """Scene-linear RGB -> sRGB-encoded uint8 for pictures: ``round(255 · srgb(clip(image · exposure, 0, 1)))``.
+
+    Any shape; the axes are kept (a (3, H, W) tensor gives (3, H, W) codes). The transfer function is
+    :func:`linear_to_srgb`, evaluated like it in the input's type: float64 for numpy, the tensor's dtype for
+    torch. Halves round up.
+    """
+    if _is_torch(image):
+        encoded = linear_to_srgb((image.detach() * exposure).clamp(0.0, 1.0)).clamp(0.0, 1.0).cpu().numpy()
+    else:
+        encoded = np.clip(linear_to_srgb(np.clip(np.asarray(image) * exposure, 0.0, 1.0)), 0.0, 1.0)
+    return (encoded * 255.0 + 0.5).astype(np.uint8)
+
+
 def gamma_to_linear(x: Any, gamma: float = FACEOLAT_DISPLAY_GAMMA) -> Any:
     """Decode a pure power-law encoding: ``max(x, 0) ** gamma``.
 

@@ -21,10 +21,11 @@ import numpy as np
 import torch
 
 from relightanyone.format.codecs import decode_image, decode_mask, encode_image, encode_mask
-from relightanyone.format.examples import face_like_image, look_at_w2c
+from relightanyone.format.examples import face_like_image
 from relightanyone.format.schema import DatasetInfo, Provenance, build_image_row
 from relightanyone.format.shards import ShardWriter
 from relightanyone.format.torch_dataset import NormalizedTorchDataset, collate_rows
+from relightanyone.render.camera import look_at_w2c
 
 ENCODINGS = ("png16", "exr-half", "raw-f16")
 RESULT = Path(__file__).resolve().parent / "results" / "loader.json"
@@ -59,7 +60,7 @@ def _write_dataset(root: Path, encoding: str, images: list[np.ndarray], masks: l
                     pattern="full",
                     split="train",
                     K=K,
-                    w2c=look_at_w2c(np.array([0.0, 0.0, 1.0])),
+                    w2c=look_at_w2c([0.0, 0.0, 1.0], np.zeros(3), [0.0, 1.0, 0.0]),
                     image=encode_image(image, encoding),
                     image_encoding=encoding,
                     mask=encode_mask(mask),

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.align.colour import linear_to_display
+
 ERROR_FULL_SCALE = 0.25
 MIN_TILE = 128
 GRID_ROWS = 3
@@ -33,14 +35,6 @@ ROW_NAMES = {
     "without_lighting_code": "without z_l swap (own dataset's code)",
 }
 BETTER = {"psnr": 1, "ssim": 1, "rmse": -1, "lpips": -1}
-
-
-def to_display(image: np.ndarray, exposure: float) -> np.ndarray:
-    """(H, W, 3) linear -> uint8 sRGB after scaling by ``exposure``."""
-    import colour
-
-    encoded = colour.cctf_encoding(np.clip(image * exposure, 0, 1), function="sRGB")
-    return (np.clip(encoded, 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
 def error_map(prediction: np.ndarray, truth: np.ndarray, mask: np.ndarray, exposure: float) -> np.ndarray:
@@ -94,10 +88,10 @@ def save_grid(
         tiles = []
         if input_image is not None:
             shown = input_image * (0.9 / max(float(np.percentile(input_image, 99)), 1e-6))
-            tiles.append(_tile(to_display(shown, 1.0), size))
-        tiles.append(_tile(to_display(truth_hwc, exposure), size))
+            tiles.append(_tile(linear_to_display(shown, 1.0), size))
+        tiles.append(_tile(linear_to_display(truth_hwc, exposure), size))
         predictions = [rows[m][index][1].transpose(1, 2, 0) for m in methods]
-        tiles += [_tile(to_display(p, exposure), size) for p in predictions]
+        tiles += [_tile(linear_to_display(p, exposure), size) for p in predictions]
         tiles += [_tile(error_map(p, truth_hwc, mask, exposure), size) for p in predictions]
         lines.append(np.concatenate([_label(label, size[1] * len(tiles))], axis=1))
         lines.append(np.concatenate(tiles, axis=1))

@@ -21,7 +21,12 @@ from relightanyone.format.schema import LIGHTS_NAME, TEMPLATE_NAME
 from relightanyone.model.fit.avatar import check_pinhole_cameras
 from relightanyone.model.fit.fitter import FitSettings, Fitter
 from relightanyone.model.fit.views import FitViews
-from relightanyone.model.networks.gaussians import Gaussians, TexelBinding, assemble_gaussians, gather_texels
+from relightanyone.model.networks.gaussians import (
+    Gaussians,
+    assemble_gaussians,
+    gather_texels,
+    load_template_binding,
+)
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
 from relightanyone.model.networks.reflectance import (
     RelightParams,
@@ -29,14 +34,12 @@ from relightanyone.model.networks.reflectance import (
     camera_centres,
     relight,
 )
+from relightanyone.model.networks.render import render_views
 from relightanyone.model.networks.single_stage import SingleStageModel
 from relightanyone.model.networks.stage2 import texel_mesh_normals, view_directions
 from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
 from relightanyone.render.lights import PointLights, full_on_rig_from_table, olat_rig_from_table
-from relightanyone.render.mesh import load_obj
-from relightanyone.render.rasterize import rasterize
-from relightanyone.render.uv_binding import UVBinding
 
 
 @dataclass
@@ -65,15 +68,9 @@ def load_single_stage_run(run: str | Path) -> SingleStageRun:
     info = json.loads((run / RUN_INFO_NAME).read_text())
     stage1_preset = Stage1Preset.from_json(checkpoint["stage1_preset"])
     preset = Stage2Preset.from_json(checkpoint["preset"])
-    mesh = load_obj(run / TEMPLATE_NAME)
-    uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, stage1_preset.uv_size)
-    binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
+    template_vertices, binding = load_template_binding(run / TEMPLATE_NAME, stage1_preset.uv_size)
     model = SingleStageModel(
-        stage1_preset,
-        preset.sh_order,
-        torch.from_numpy(mesh.vertices).float(),
-        binding,
-        len(checkpoint["subjects"]),
+        stage1_preset, preset.sh_order, template_vertices, binding, len(checkpoint["subjects"])
     )
     model.load_state_dict(checkpoint["model"])
     dataset_path = Path(info["dataset"]["path"])
@@ -163,18 +160,7 @@ class SingleStageAvatar:
             self.preset.lobe_normalization,
             self.preset.inverse_square,
         ).colour
-        image, _, _ = rasterize(
-            gaussians.means[0],
-            gaussians.quats[0],
-            gaussians.scales[0],
-            gaussians.opacities[0],
-            colours,
-            w2c,
-            K,
-            width,
-            height,
-            background=background,
-        )
+        image, _ = render_views(gaussians, K, w2c, width, height, colours=colours, background=background)
         return image
 
 

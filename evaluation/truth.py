@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from relightanyone.errors import InputError
-from relightanyone.model.fit.views import scale_intrinsics
+from relightanyone.render.camera import resize_intrinsics
 from relightanyone.render.envmap import load_envmap
 from relightanyone.synth.world import render_subject_olat
 
@@ -184,7 +184,7 @@ def warp_native_to_row(
         fine_width = round(width * scale)
         ratio = fine_width / width  # one ratio for both axes: rows are square crops
         fine_height = round(height * ratio)
-        fine_K = scale_intrinsics(K_row, ratio)
+        fine_K = resize_intrinsics(K_row, ratio, ratio)
     map_x, map_y = cv2.initUndistortRectifyMap(
         np.asarray(K_native, dtype=np.float64),
         np.asarray(dist, dtype=np.float64),

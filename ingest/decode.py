@@ -21,7 +21,6 @@ runner quarantines that view and carries on.
 from __future__ import annotations
 
 import functools
-import hashlib
 import io
 import posixpath
 import zipfile
@@ -33,6 +32,7 @@ import numpy as np
 
 from relightanyone.align.colour import apply_ccm, gamma_to_linear, linear_to_srgb, srgb_to_linear
 from relightanyone.errors import InputError
+from relightanyone.hashing import sha256_bytes, sha256_file
 from relightanyone.ingest.records import ColourCalibration, ImageRef
 
 DISPLAY_CODECS = {"avif-srgb": "srgb", "png-srgb": "srgb", "jpg-srgb": "srgb", "mp4-frame": "srgb"}
@@ -241,18 +241,6 @@ def decode_video_frames(path: Path, frame_indices: Iterable[int]) -> dict[int, n
     return frames
 
 
-def sha256_bytes(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
-
-def sha256_path(path: Path, chunk: int = 1 << 20) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while block := handle.read(chunk):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 class TaskDecoder:
     """Decodes the images of one ingest task, reusing open archives, decoded videos and file hashes.
 
@@ -320,7 +308,7 @@ class TaskDecoder:
             return sha256_bytes(data if data is not None else self.read_bytes(ref))
         key = str(self.resolve(ref.path))
         if key not in self._hashes:
-            self._hashes[key] = sha256_bytes(data) if data is not None else sha256_path(Path(key))
+            self._hashes[key] = sha256_bytes(data) if data is not None else sha256_file(Path(key))
         return self._hashes[key]
 
     def decode(self, ref: ImageRef) -> tuple[np.ndarray, str]:

@@ -1,8 +1,8 @@
 """Image steps every ingest adapter shares: projection, crop box, undistort+crop+resize, mesh mask.
 
 Camera conventions (``docs/conventions.md``): OpenCV pinhole (x right, y down, z forward), the centre of pixel
-``(u, v)`` is at ``(u, v)``; resizing by ``s`` gives ``f *= s, c = (c + 0.5) s - 0.5``; cropping at
-``(x0, y0)`` gives ``c -= (x0, y0)``. Distortion coefficients are in OpenCV order
+``(u, v)`` is at ``(u, v)``; crops and resizes change K by ``render.camera.crop_intrinsics`` and
+``resize_intrinsics``. Distortion coefficients are in OpenCV order
 ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]])``. Everything is plain numpy: ``K (3, 3)``,
 ``w2c (4, 4)``, ``dist (D,)``.
 """
@@ -18,6 +18,7 @@ import numpy as np
 
 from relightanyone.align.geometry import camera_centre
 from relightanyone.compiled import load_extension
+from relightanyone.render.camera import crop_intrinsics, resize_intrinsics
 
 # Largest ratio of the remapped crop's side to the output's when downscaling (memory: out² · k² pixels).
 MAX_SUPERSAMPLING = 16
@@ -136,10 +137,8 @@ def crop_box_around_points(pixels: Any, image_size: Any, margin: float = 0.1) ->
 
 
 def crop_resize_intrinsics(K: Any, box: Any, out_size: int) -> np.ndarray:
-    """Intrinsics of the crop ``box`` of an undistorted image resized to ``out_size²``.
-
-    Crop: ``c -= (x0, y0)``; resize by ``s = out_size / side``: ``f *= s``, ``c = (c + 0.5) s - 0.5``
-    (the skew term scales like a focal). Returns ``(3, 3)`` float64.
+    """Intrinsics of the crop ``box`` of an undistorted image resized to ``out_size²``: the crop at
+    ``(x0, y0)``, then the resize by ``out_size / side``. Returns ``(3, 3)`` float64.
     """
     K = _as_K(K)
     x0, y0, x1, y1 = (int(v) for v in box)
@@ -147,12 +146,7 @@ def crop_resize_intrinsics(K: Any, box: Any, out_size: int) -> np.ndarray:
     if side <= 0 or y1 - y0 != side:
         raise ValueError(f"crop box must be a non-empty square (x0, y0, x1, y1), got {tuple(box)}")
     scale = out_size / side
-    K_new = K.copy()
-    K_new[0, 2] -= x0
-    K_new[1, 2] -= y0
-    K_new[:2, :2] *= scale
-    K_new[:2, 2] = (K_new[:2, 2] + 0.5) * scale - 0.5
-    return K_new
+    return resize_intrinsics(crop_intrinsics(K, x0, y0), scale, scale)
 
 
 def _resample(image: np.ndarray, K: np.ndarray, dist: np.ndarray, K_out: np.ndarray, size: int) -> np.ndarray:

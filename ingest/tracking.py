@@ -19,7 +19,6 @@ move with the skull.
 from __future__ import annotations
 
 import functools
-import hashlib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +33,7 @@ from relightanyone.align.geometry import (
     w2c_to_canonical,
 )
 from relightanyone.errors import InputError
+from relightanyone.hashing import sha256_file
 from relightanyone.ingest.calibration import from_transforms_json
 from relightanyone.render.mesh import faces_touching, read_obj, read_obj_vertices
 
@@ -123,7 +123,7 @@ def _load_template(path: Path, neck_mask_path: Path | None, signature: tuple) ->
         faces=faces,
         neck_vertices=neck_vertices,
         neck_faces=faces_touching(neck_vertices, faces),
-        sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
+        sha256=sha256_file(path),
         neck_mask_path=Path(neck_mask_path) if neck_mask_path is not None else None,
     )
 

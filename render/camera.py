@@ -11,7 +11,9 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
+import numpy as np
 import torch
 from kornia.geometry.calibration import distort_points, undistort_points
 
@@ -319,7 +321,7 @@ class Cameras:
         """Cameras for the image resized by ``scale`` or to ``(new_width, new_height)``.
 
         The new size is ``round(width * scale)`` (or the given size); each axis then uses its exact factor
-        ``s = new / old`` with the half-pixel rule ``f *= s``, ``c = (c + 0.5) * s - 0.5`` (skew scales with x).
+        ``new / old`` in :func:`resize_intrinsics`.
         """
         if isinstance(scale, tuple | list):
             new_w = torch.full_like(self.width, int(scale[0]))
@@ -333,24 +335,17 @@ class Cameras:
             raise ValueError("resize would produce an empty image")
         sx = (new_w.double() / self.width.double()).to(self.K)
         sy = (new_h.double() / self.height.double()).to(self.K)
-        K = self.K.clone()
-        K[:, 0, 0] *= sx
-        K[:, 0, 1] *= sx
-        K[:, 1, 1] *= sy
-        K[:, 0, 2] = (K[:, 0, 2] + 0.5) * sx - 0.5
-        K[:, 1, 2] = (K[:, 1, 2] + 0.5) * sy - 0.5
-        return Cameras(K, self.w2c, self.dist, new_w, new_h, self.names)
+        return Cameras(resize_intrinsics(self.K, sx, sy), self.w2c, self.dist, new_w, new_h, self.names)
 
     def crop(self, x0: int | torch.Tensor, y0: int | torch.Tensor, width: int, height: int) -> Cameras:
-        """Cameras for the ``width x height`` crop whose top-left pixel is (x0, y0): ``c -= (x0, y0)``."""
+        """Cameras for the ``width x height`` crop whose top-left pixel is (x0, y0) (:func:`crop_intrinsics`)."""
         if width <= 0 or height <= 0:
             raise ValueError(f"crop size must be positive, got {width}x{height}")
-        K = self.K.clone()
-        K[:, 0, 2] -= torch.as_tensor(x0, dtype=K.dtype, device=K.device)
-        K[:, 1, 2] -= torch.as_tensor(y0, dtype=K.dtype, device=K.device)
+        x0 = torch.as_tensor(x0, dtype=self.K.dtype, device=self.K.device)
+        y0 = torch.as_tensor(y0, dtype=self.K.dtype, device=self.K.device)
         new_w = torch.full_like(self.width, int(width))
         new_h = torch.full_like(self.height, int(height))
-        return Cameras(K, self.w2c, self.dist, new_w, new_h, self.names)
+        return Cameras(crop_intrinsics(self.K, x0, y0), self.w2c, self.dist, new_w, new_h, self.names)
 
     # ------------------------------------------------------------------ world edits
     def transform_world(self, similarity: torch.Tensor) -> Cameras:
@@ -389,6 +384,71 @@ class Cameras:
                 f"expected points of shape (N, {dim}) or ({len(self)}, N, {dim}), got {tuple(points.shape)}"
             )
         return points
+
+
+def look_at_w2c(eye: Any, target: Any, up: Any) -> np.ndarray:
+    """(4, 4) float64 world-to-camera matrix (OpenCV axes) of a camera at ``eye`` looking at ``target``.
+
+    ``up`` is the world direction that points up in the image (towards smaller v); it need not be
+    perpendicular to the view direction, only not parallel to it. eye, target, up: (3,).
+    """
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    forward = target - eye
+    forward = forward / np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    length = np.linalg.norm(right)
+    if not length > 1e-12:
+        raise ValueError(f"look-at: up {up.tolist()} is parallel to the view direction {forward.tolist()}")
+    right = right / length
+    down = np.cross(forward, right)
+    rotation = np.stack([right, down, forward])  # rows: camera x, y, z in world coordinates
+    w2c = np.eye(4)
+    w2c[:3, :3] = rotation
+    w2c[:3, 3] = -rotation @ eye
+    return w2c
+
+
+def _copy_intrinsics(K: Any) -> Any:
+    """A tensor's clone (same dtype and device), or anything else as a new float64 numpy array."""
+    if isinstance(K, torch.Tensor):
+        return K.clone()
+    return np.array(K, dtype=np.float64, copy=True)
+
+
+def resize_intrinsics(K: Any, sx: Any, sy: Any) -> Any:
+    """Intrinsics of the image resized by ``sx`` along x and ``sy`` along y.
+
+    Pixel centres sit on integers, so a pixel's centre ``c`` moves to ``(c + 0.5) * s - 0.5``; focals scale:
+    ``fx *= sx``, ``fy *= sy``, and the skew ``K[0, 1] *= sx``.
+
+    Args:
+        K: (..., 3, 3) numpy array (or nested lists) or torch tensor.
+        sx, sy: scale factors, scalars or arrays of K's batch shape (...).
+    Returns:
+        (..., 3, 3) new intrinsics: a tensor in K's dtype for a tensor, else float64 numpy.
+    """
+    K = _copy_intrinsics(K)
+    K[..., 0, 0] *= sx
+    K[..., 0, 1] *= sx
+    K[..., 1, 1] *= sy
+    K[..., 0, 2] = (K[..., 0, 2] + 0.5) * sx - 0.5
+    K[..., 1, 2] = (K[..., 1, 2] + 0.5) * sy - 0.5
+    return K
+
+
+def crop_intrinsics(K: Any, x0: Any, y0: Any) -> Any:
+    """Intrinsics of the crop whose top-left pixel is ``(x0, y0)``: ``c -= (x0, y0)``.
+
+    Args:
+        K: (..., 3, 3) numpy array (or nested lists) or torch tensor.
+        x0, y0: crop origin in pixels, scalars or arrays of K's batch shape (...).
+    Returns:
+        (..., 3, 3) new intrinsics: a tensor in K's dtype for a tensor, else float64 numpy.
+    """
+    K = _copy_intrinsics(K)
+    K[..., 0, 2] -= x0
+    K[..., 1, 2] -= y0
+    return K
 
 
 def rigid_inverse(transform: torch.Tensor) -> torch.Tensor:

@@ -174,14 +174,13 @@ def rasterize(
 
     compiled = rasterize_cpp if chosen == "cpp" and rasterize_cpp.load_tile_kernel() is not None else None
     # The fused compiled projection has no camera gradients: optimised cameras take the PyTorch projection.
-    if compiled is not None and means.dtype == torch.float32 and not (w2c.requires_grad or K.requires_grad):
-        projection = compiled.project_gaussians_cpp(
-            means, quats, scales, opacities, w2c, K, width, height, mode=mode, eps2d=eps2d, near=near, far=far
-        )
-    else:
-        projection = project_gaussians(
-            means, quats, scales, opacities, w2c, K, width, height, mode=mode, eps2d=eps2d, near=near, far=far
-        )
+    fused = (
+        compiled is not None and means.dtype == torch.float32 and not (w2c.requires_grad or K.requires_grad)
+    )
+    project = compiled.project_gaussians_cpp if fused else project_gaussians
+    projection = project(
+        means, quats, scales, opacities, w2c, K, width, height, mode=mode, eps2d=eps2d, near=near, far=far
+    )
     # Depth is composited as one more channel (with a zero background), like gsplat's "RGB+ED".
     colors = torch.cat([features, projection.depths[..., None].to(features.dtype)], dim=-1)
     background_ext = torch.cat([background, background.new_zeros(C, 1)], dim=-1)

@@ -189,19 +189,9 @@ class _TileComposite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_image, grad_alpha, grad_transmittance):
-        (
-            means2d,
-            conics,
-            opacities,
-            colors,
-            background,
-            radii,
-            tile_offsets,
-            flatten_ids,
-            image,
-            transmittance,
-            last,
-        ) = ctx.saved_tensors
+        saved = ctx.saved_tensors
+        inputs, (radii, tile_offsets, flatten_ids, image, transmittance, last) = saved[:5], saved[5:]
+        background = inputs[4]
         width, height, tile_size, threads = ctx.frame
         grad_image = (
             torch.zeros_like(image) if grad_image is None else grad_image.to(torch.float32).contiguous()
@@ -211,10 +201,7 @@ class _TileComposite(torch.autograd.Function):
             grad_alpha = grad_alpha - grad_transmittance.to(torch.float32)  # T = 1 - alpha
         grad_alpha = grad_alpha.contiguous()
         grads = load_tile_kernel().composite_backward(
-            means2d,
-            conics,
-            opacities,
-            colors,
+            *inputs[:4],
             radii,
             background,
             tile_offsets,

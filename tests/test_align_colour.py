@@ -17,6 +17,7 @@ from relightanyone.align.colour import (
     fit_affine_colour,
     fit_ccm,
     gamma_to_linear,
+    linear_to_display,
     linear_to_gamma,
     linear_to_srgb,
     read_faceolat_colour_matrix,
@@ -42,6 +43,16 @@ def test_srgb_known_values_numpy_and_torch():
     assert srgb_to_linear(values).numpy() == pytest.approx(srgb_to_linear(values.numpy()), abs=1e-9)
     roundtrip = linear_to_srgb(srgb_to_linear(values))
     assert roundtrip.shape == values.shape and torch.allclose(roundtrip, values, atol=1e-7)
+
+
+def test_display_codes_known_values_numpy_and_torch():
+    # 0.18 linear -> 0.461356 sRGB -> 117.65 -> 118; 0.5 -> 0.735357 -> 187.52 -> 188; clipped below 0 and above 1.
+    linear = np.array([[0.18, 0.5, 1.0], [-0.2, 3.0, 0.0]])
+    expected = np.array([[118, 188, 255], [0, 255, 0]], dtype=np.uint8)
+    assert np.array_equal(linear_to_display(linear), expected)
+    assert np.array_equal(linear_to_display(linear / 2, exposure=2.0), expected)
+    codes = linear_to_display(torch.tensor(linear, dtype=torch.float32))
+    assert codes.dtype == np.uint8 and np.array_equal(codes, expected)  # axes are kept
 
 
 def test_gamma_22_matches_the_faceolat_encoding():

@@ -18,6 +18,7 @@ from relightanyone.ingest.steps import (
     project_points,
     undistort_crop_resize,
 )
+from relightanyone.render.camera import look_at_w2c
 
 K_SRC = np.array([[520.0, 0.0, 318.3], [0.0, 524.0, 236.9], [0.0, 0.0, 1.0]])
 DIST = np.array([-0.21, 0.06, 0.0012, -0.0017, -0.008])
@@ -25,18 +26,8 @@ W_SRC, H_SRC = 640, 480
 
 
 def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """OpenCV w2c for a camera at ``eye`` looking at ``target`` with world +y up (image y down)."""
-    up = np.array([0.0, 1.0, 0.0])
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, -up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    w2c = np.eye(4)
-    w2c[:3, :3] = R
-    w2c[:3, 3] = -R @ eye
-    return w2c
+    """OpenCV w2c for a camera at ``eye`` looking at ``target`` with world +y up in the image."""
+    return look_at_w2c(eye, target, (0.0, 1.0, 0.0))
 
 
 def _undistort_pixels(pixels: np.ndarray, K: np.ndarray = K_SRC, dist: np.ndarray = DIST) -> np.ndarray:

@@ -79,7 +79,7 @@ def test_read_back_gives_the_activated_parameters(tmp_path):
 
 
 def test_read_back_renders_the_same_image(tmp_path):
-    from relightanyone.model.networks.render import look_at_w2c
+    from relightanyone.render.camera import look_at_w2c
     from relightanyone.render.rasterize import rasterize
 
     gaussians = _gaussians(64, seed=2)

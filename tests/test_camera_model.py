@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-from relightanyone.render.camera import Cameras, rigid_inverse, similarity_scale
+from relightanyone.render.camera import (
+    Cameras,
+    crop_intrinsics,
+    look_at_w2c,
+    resize_intrinsics,
+    rigid_inverse,
+    similarity_scale,
+)
 
 
 def random_rig(batch: int = 4, seed: int = 0, n_dist: int = 5, skew: bool = False) -> Cameras:
@@ -139,6 +146,43 @@ def test_crop_shifts_the_principal_point() -> None:
     torch.testing.assert_close(
         uv_both, (uv - torch.tensor([100.0, 40.0], dtype=torch.float64) + 0.5) * 0.5 - 0.5
     )
+
+
+def test_intrinsics_rules_known_values() -> None:
+    K = np.array([[800.0, 2.0, 319.5], [0.0, 820.0, 239.5], [0.0, 0.0, 1.0]])
+    # Resize 640x480 -> 320x120: the image centre stays the image centre, focals and skew scale per axis.
+    np.testing.assert_array_equal(
+        resize_intrinsics(K, 0.5, 0.25), [[400.0, 1.0, 159.5], [0.0, 205.0, 59.5], [0.0, 0.0, 1.0]]
+    )
+    np.testing.assert_array_equal(
+        crop_intrinsics(K, 100, 40), [[800.0, 2.0, 219.5], [0.0, 820.0, 199.5], [0.0, 0.0, 1.0]]
+    )
+    assert K[0, 2] == 319.5  # the input is not modified
+    # A tensor batch keeps its dtype and takes one factor (or origin) per camera.
+    batch = torch.tensor(np.stack([K, K]), dtype=torch.float32)
+    resized = resize_intrinsics(batch, torch.tensor([2.0, 0.5]), torch.tensor([2.0, 0.5]))
+    assert resized.dtype == torch.float32
+    assert resized[:, 0, 2].tolist() == [639.5, 159.5] and resized[:, 1, 1].tolist() == [1640.0, 410.0]
+    cropped = crop_intrinsics(batch, torch.tensor([0.0, 10.0]), torch.tensor([5.0, 0.0]))
+    assert cropped[:, 0, 2].tolist() == [319.5, 309.5] and cropped[:, 1, 2].tolist() == [234.5, 239.5]
+
+
+@pytest.mark.parametrize("up", [(0.0, 1.0, 0.0), (0.0, 0.0, 1.0), (0.3, -1.0, 0.2)])
+def test_look_at_puts_up_above_the_image_centre(up: tuple[float, float, float]) -> None:
+    eye, target = np.array([0.4, 0.3, 1.2]), np.array([0.05, -0.02, 0.1])
+    w2c = look_at_w2c(eye, target, up)
+    assert np.allclose(w2c[:3, :3] @ w2c[:3, :3].T, np.eye(3)) and np.linalg.det(w2c[:3, :3]) > 0
+    K = torch.tensor([[100.0, 0.0, 49.5], [0.0, 100.0, 39.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    cams = Cameras.create(K, torch.tensor(w2c), 100, 80)
+    unit_up = np.asarray(up) / np.linalg.norm(up)
+    beside = np.cross(target - eye, unit_up)  # to the right of the view, seen from the camera
+    points = torch.tensor(np.stack([target, target + 0.05 * unit_up, target + 0.05 * beside]))
+    pixels, depth = cams.project(points)
+    centre, above, right = pixels[0]
+    torch.testing.assert_close(centre, torch.tensor([49.5, 39.5], dtype=torch.float64))
+    assert float(above[1]) < 39.5 and float(right[0]) > 49.5 and bool((depth > 0).all())
+    with pytest.raises(ValueError, match="parallel to the view direction"):
+        look_at_w2c(eye, target, eye - target)
 
 
 def test_transform_world_keeps_pixels_and_scales_depth() -> None:

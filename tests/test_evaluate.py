@@ -19,7 +19,6 @@ from helpers.sphere_world import (
 )
 
 from relightanyone.evaluation.cases import relight_weights
-from relightanyone.evaluation.metrics import masked_psnr, masked_rmse, masked_ssim_score
 from relightanyone.evaluation.truth import (
     WorldAnswers,
     match_lights,
@@ -27,6 +26,8 @@ from relightanyone.evaluation.truth import (
     warp_native_to_row,
     world_to_normalized,
 )
+from relightanyone.model.metrics import masked_psnr, masked_rmse, masked_ssim
+from relightanyone.render.camera import crop_intrinsics, resize_intrinsics
 from relightanyone.render.envmap import save_envmap
 
 
@@ -38,8 +39,8 @@ def test_metrics_on_known_errors():
     prediction[:, :, :2] = 0.9  # outside the mask: ignored
     assert torch.allclose(masked_rmse(prediction, target, mask), torch.full((2,), 0.1), atol=1e-5)
     assert torch.allclose(masked_psnr(prediction, target, mask), torch.full((2,), 20.0), atol=1e-3)
-    assert torch.allclose(masked_ssim_score(target, target, mask), torch.ones(2), atol=1e-5)
-    assert (masked_ssim_score(target + 0.2 * torch.randn_like(target) * mask, target, mask) < 0.9).all()
+    assert torch.allclose(masked_ssim(target, target, mask), torch.ones(2), atol=1e-5)
+    assert (masked_ssim(target + 0.2 * torch.randn_like(target) * mask, target, mask) < 0.9).all()
 
 
 def test_warp_is_undistorted_crop_and_area_resize():
@@ -47,10 +48,7 @@ def test_warp_is_undistorted_crop_and_area_resize():
     native = cv2.GaussianBlur(rng.random((64, 80, 3)).astype(np.float32), (5, 5), 1.0)
     K_native = np.array([[100.0, 0, 39.5], [0, 100.0, 31.5], [0, 0, 1]])
     x0, y0, scale, width, height = 8, 4, 0.5, 24, 20
-    K_row = K_native.copy()
-    K_row[:2, 2] -= (x0, y0)
-    K_row[:2, :2] *= scale
-    K_row[:2, 2] = (K_row[:2, 2] + 0.5) * scale - 0.5
+    K_row = resize_intrinsics(crop_intrinsics(K_native, x0, y0), scale, scale)
     warped = warp_native_to_row(native, K_native, np.zeros(5), K_row, width, height)
     crop = native[y0 : y0 + 2 * height, x0 : x0 + 2 * width]
     expected = crop.reshape(height, 2, width, 2, 3).mean(axis=(1, 3))

@@ -10,13 +10,14 @@ import pyarrow as pa
 import pytest
 from click.testing import CliRunner
 
-from relightanyone.format.arrow_io import StreamFileWriter, sha256_file
+from relightanyone.format.arrow_io import StreamFileWriter
 from relightanyone.format.cli import inspect_command, validate_command
 from relightanyone.format.examples import write_example_dataset as write_demo
 from relightanyone.format.preview import render_contact_sheet
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import IMAGE_SCHEMA
 from relightanyone.format.validate import validate_path
+from relightanyone.hashing import sha256_file
 
 
 @pytest.fixture(scope="module")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -34,6 +35,7 @@ from relightanyone.model.networks.stage2 import (
     scatter_texels,
     texel_mesh_normals,
 )
+from relightanyone.render.camera import look_at_w2c
 from relightanyone.render.lights import PointLights, fibonacci_sphere_directions
 from relightanyone.render.sh import lambertian_transfer, sh_count
 from relightanyone.render.uv_binding import UVBinding
@@ -272,10 +274,8 @@ def test_pattern_lights_cameras_and_errors():
         pattern_light_indices("olat-007", named, 3, "d1")
     with pytest.raises(ValueError, match="sunset"):
         pattern_light_indices("sunset", named, 3, "d1")
-    from relightanyone.format.examples import look_at_w2c
-
     eye = [0.3, -0.2, 0.9]
-    w2c = torch.tensor(look_at_w2c(eye), dtype=torch.float32)[None]
+    w2c = torch.tensor(look_at_w2c(eye, np.zeros(3), [0.0, 1.0, 0.0]), dtype=torch.float32)[None]
     assert torch.allclose(camera_centres(w2c), torch.tensor([eye]), atol=1e-6)
 
 

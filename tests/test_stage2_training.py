@@ -18,12 +18,12 @@ from helpers.sphere_world import tiny_stage2_preset as sphere_tiny_stage2_preset
 from helpers.stage1_world import sphere_dataset, sphere_mesh, tiny_stage1_preset, write_dataset
 
 from relightanyone.cli import cli
-from relightanyone.format.examples import look_at_w2c
 from relightanyone.model.networks.reflectance import camera_centres
 from relightanyone.model.networks.stage2 import texel_mesh_normals
 from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.model.train.stage1 import Stage1Config, train_stage1
 from relightanyone.model.train.stage2 import Stage2Config, Stage2Trainer
+from relightanyone.render.camera import look_at_w2c
 
 LIGHT_INTENSITY = 2.5  # radiant intensity: about 2.5 W/m² on the sphere, radiance 0.2-0.5 per light
 
@@ -32,7 +32,7 @@ def stage2_camera(c: int) -> tuple[np.ndarray, np.ndarray]:
     """(K, w2c) of camera ``c``: the sphere world's intrinsics, the views 0.6 rad apart."""
     K, _ = sphere_camera(c)
     angle = 0.6 * (c - 1)
-    return K, look_at_w2c(0.5 * np.array([np.sin(angle), 0.1, np.cos(angle)]))
+    return K, look_at_w2c(0.5 * np.array([np.sin(angle), 0.1, np.cos(angle)]), np.zeros(3), [0.0, 1.0, 0.0])
 
 
 def write_olat_dataset(root: Path, name: str = "olat", subjects: int = 2, cameras: int = 3) -> Path:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from relightanyone.synth.capture import look_at_w2c
 from relightanyone.synth.raytrace import (
     PointLights,
     Scene,
@@ -19,15 +20,7 @@ from relightanyone.synth.template import make_template
 
 
 def look_at_camera(centre, target, width, height, f, dist=None, name="cam") -> SynthCamera:
-    centre = np.asarray(centre, float)
-    forward = np.asarray(target, float) - centre
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, [0.0, 1.0, 0.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    w2c = np.eye(4)
-    w2c[:3, :3] = np.stack([right, down, forward])
-    w2c[:3, 3] = -w2c[:3, :3] @ centre
+    w2c = look_at_w2c(centre, target)
     K = np.array([[f, 0, width / 2 - 0.5], [0, f, height / 2 - 0.5], [0, 0, 1.0]])
     return SynthCamera(name, K, w2c, width, height, np.zeros(5) if dist is None else np.asarray(dist, float))
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from relightanyone.align.colour import linear_to_srgb
+from relightanyone.align.colour import linear_to_display, linear_to_srgb
 from relightanyone.errors import InputError
 from relightanyone.format.preview import render_contact_sheet
 from relightanyone.format.reader import NormalizedDataset
@@ -29,7 +29,7 @@ from relightanyone.model.fit.avatar import (
     relight_views,
 )
 from relightanyone.model.fit.lighting_choice import NamedLighting, safe_name
-from relightanyone.model.networks.render import orbit_cameras, to_display
+from relightanyone.model.networks.render import orbit_cameras
 from relightanyone.render.camera import Cameras
 from relightanyone.render.envmap import PrefilteredEnvmap, save_envmap
 
@@ -216,12 +216,6 @@ def exposure_gain(images: Sequence[torch.Tensor], stops: float | None) -> float:
     return AUTO_EXPOSURE_TARGET / reference if reference > 0 else 1.0
 
 
-def to_srgb8(image: torch.Tensor, gain: float = 1.0) -> np.ndarray:
-    """(3, H, W) linear RGB -> (H, W, 3) uint8 with the sRGB transfer function (after ``gain``, clipped)."""
-
-    return to_display(image * gain)
-
-
 def write_exr(path: Path, image: torch.Tensor) -> None:
     """(3, H, W) linear RGB -> float32 EXR."""
 
@@ -256,7 +250,7 @@ def save_frames(
         saved.gain = exposure_gain([], stops)
     for camera, label, image in frames:
         stem = f"{safe_name(camera)}_{label}"
-        display = to_srgb8(image, saved.gain)
+        display = linear_to_display(image, saved.gain).transpose(1, 2, 0)
         Image.fromarray(display).save(out / f"{stem}.png")
         saved.files.append(f"{stem}.png")
         if exr:

@@ -39,22 +39,23 @@ from relightanyone.model.fit.views import FitViews, load_fit_views
 from relightanyone.model.networks.gaussians import Gaussians
 from relightanyone.model.networks.presets import Stage2Preset
 from relightanyone.model.networks.reflectance import RelightParams, camera_centres, relight
+from relightanyone.model.networks.render import render_views
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.networks.stage2 import Stage2Model, head_frame, texel_mesh_normals
 from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.model.train.losses import (
     composite_over_background,
     masked_l1,
-    masked_ssim,
     offset_l2,
     scale_bound_loss,
+    ssim_loss,
     vertex_l2,
+    weighted_sum,
 )
 from relightanyone.model.train.run import load_run
 from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
 from relightanyone.model.train.sampling import iteration_generator
 from relightanyone.render.lights import PointLights, full_on_rig_from_table, olat_rig_from_table
-from relightanyone.render.rasterize import rasterize
 
 VIEW_STREAM = 10  # generator streams of the fit (views per step, locality codes, backgrounds)
 LOCALITY_STREAM = 11
@@ -308,17 +309,7 @@ class Fitter:
         )
         height, width = self.views.images.shape[-2:]
         # One splat call: the geometry is shared by the views, the relit colours are per camera (v, N, 3).
-        image, alpha, _ = rasterize(
-            gaussians.means[0],
-            gaussians.quats[0],
-            gaussians.scales[0],
-            gaussians.opacities[0],
-            relit.colour,
-            w2c,
-            K,
-            width,
-            height,
-        )
+        image, alpha = render_views(gaussians, K, w2c, width, height, colours=relit.colour)
         return image, alpha, vertices, gaussians
 
     def step_backgrounds(self, step: int, count: int, stream_offset: int = 0) -> torch.Tensor:
@@ -342,28 +333,26 @@ class Fitter:
             mask = torch.ones_like(mask)
         terms = {
             "l1": masked_l1(render, target, mask).mean(),
-            "ssim": (1.0 - masked_ssim(render, target, mask)).mean(),
+            "ssim": ssim_loss(render, target, mask).mean(),
         }
         if self.views.tracked_vertices is not None:
             terms["geometry"] = vertex_l2(vertices, self.views.tracked_vertices[None]).mean()
         return terms, vertices, gaussians
 
     def data_loss(self, terms: dict[str, torch.Tensor]) -> torch.Tensor:
-        total = self.weights.l1 * terms["l1"] + self.weights.ssim * terms["ssim"]
-        if "geometry" in terms:
-            total = total + self.weights.geometry * terms["geometry"]
-        return total
+        weights = {"l1": self.weights.l1, "ssim": self.weights.ssim, "geometry": self.weights.geometry}
+        return weighted_sum(terms, {name: weight for name, weight in weights.items() if name in terms})
 
     def inversion_loss(self, view_index: list[int], step: int = 0) -> tuple[torch.Tensor, dict[str, float]]:
         """``10 L1 + 0.2 (1 − SSIM) + 0.4 vertex L2 + λ_id ‖z_id‖²`` and its logged terms."""
         terms, _, _ = self.data_terms(view_index, self.step_backgrounds(step, len(view_index)))
         terms["identity"] = self.z_id.pow(2).sum()
         terms["lighting_prior"] = (self.log_intensities - self.log_intensities_start).pow(2).mean()
-        total = (
-            self.data_loss(terms)
-            + self.settings.identity_weight * terms["identity"]
-            + self.settings.lighting_prior_weight * terms["lighting_prior"]
-        )
+        priors = {
+            "identity": self.settings.identity_weight,
+            "lighting_prior": self.settings.lighting_prior_weight,
+        }
+        total = weighted_sum(terms, priors, self.data_loss(terms))
         return total, _logged(terms, total)
 
     def finetune_loss(
@@ -373,10 +362,8 @@ class Fitter:
         terms, _, gaussians = self.data_terms(view_index, self.step_backgrounds(step, len(view_index), 1))
         terms["scale"] = scale_bound_loss(gaussians.scales_preclip).mean()
         terms["offset"] = offset_l2(gaussians.offsets).mean()
-        total = (
-            self.data_loss(terms)
-            + self.weights.scale * terms["scale"]
-            + self.weights.offset_end * terms["offset"]
+        total = weighted_sum(
+            terms, {"scale": self.weights.scale, "offset": self.weights.offset_end}, self.data_loss(terms)
         )
         if locality_weight > 0:
             rng = iteration_generator(self.settings.seed, step, LOCALITY_STREAM)

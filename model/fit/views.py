@@ -13,6 +13,7 @@ import torch
 from relightanyone.errors import InputError
 from relightanyone.format.schema import make_mesh_key
 from relightanyone.format.torch_dataset import LEARNED, NormalizedTorchDataset, image_hwc
+from relightanyone.render.camera import resize_intrinsics
 
 
 @dataclass
@@ -37,14 +38,6 @@ class FitViews:
 
     def __len__(self) -> int:
         return self.images.shape[0]
-
-
-def scale_intrinsics(K: np.ndarray, scale: float) -> np.ndarray:
-    """K (3, 3) of an image resized by ``scale`` (the half-pixel rule of docs/conventions.md)."""
-    scaled = np.array(K, dtype=np.float64, copy=True)
-    scaled[:2, :2] *= scale
-    scaled[:2, 2] = (scaled[:2, 2] + 0.5) * scale - 0.5
-    return scaled
 
 
 def load_fit_views(
@@ -98,7 +91,7 @@ def load_fit_views(
         images=torch.stack(images),
         masks=torch.stack(masks),
         K=torch.tensor(
-            np.stack([scale_intrinsics(item["K"].numpy(), image_scale) for item in items]),
+            np.stack([resize_intrinsics(item["K"].numpy(), image_scale, image_scale) for item in items]),
             dtype=torch.float32,
         ),
         w2c=torch.stack([item["w2c"] for item in items]).to(torch.float32),

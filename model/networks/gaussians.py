@@ -13,11 +13,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 
 from relightanyone.errors import InputError
+from relightanyone.model.networks.presets import Stage1Preset
+from relightanyone.render.mesh import load_obj
+from relightanyone.render.uv_binding import UVBinding
 
 GEOMETRY_CHANNELS = 11
 COLOUR_CHANNELS = 3
@@ -104,6 +108,26 @@ def gather_texels(uv_maps: torch.Tensor, binding: TexelBinding) -> torch.Tensor:
     batch, channels = uv_maps.shape[:2]
     valid_index = binding.valid_index.to(uv_maps.device)
     return uv_maps.reshape(batch, channels, -1)[:, :, valid_index].transpose(1, 2)
+
+
+def load_template_binding(template_path: Path, uv_size: int) -> tuple[torch.Tensor, TexelBinding]:
+    """The template mesh of a run or dataset: its vertices (V, 3) float32 and its valid texels at ``uv_size``²."""
+    mesh = load_obj(template_path)
+    uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, uv_size)
+    binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
+    return torch.from_numpy(mesh.vertices).float(), binding
+
+
+def bind_template(
+    preset: Stage1Preset, template_vertices: torch.Tensor, binding: TexelBinding
+) -> tuple[torch.Tensor, float]:
+    """Check that ``binding`` has the preset's UV size; the template (V, 3) as float32 and its texel spacing."""
+    if binding.uv_size != preset.uv_size:
+        raise ValueError(
+            f"UV binding is {binding.uv_size}² but preset {preset.name!r} needs {preset.uv_size}²"
+        )
+    template_vertices = torch.as_tensor(template_vertices, dtype=torch.float32)
+    return template_vertices, texel_spacing(template_vertices, binding.faces, binding.count)
 
 
 def texel_spacing(vertices: torch.Tensor, faces: torch.Tensor, valid_texels: int) -> float:

@@ -11,6 +11,40 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import ClassVar, Self
+
+
+class PresetRecord:
+    """What both presets share: copies with changes, and the JSON form stored in checkpoints."""
+
+    loss_weights_type: ClassVar[type]  # the dataclass of the nested ``loss`` field
+
+    def replace(self, **changes) -> Self:
+        """A copy with some fields changed (e.g. ``iterations`` for a short test run)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_json(cls, data: dict) -> Self:
+        data = dict(data)
+        data["loss"] = cls.loss_weights_type(**data.get("loss", {}))
+        return cls(**data)
+
+
+def preset_table(preset_type: type, columns: tuple[str, ...], rows: list[tuple]) -> dict:
+    """``{name: preset}`` from a table whose rows hold the ``columns`` fields (the first is the name)."""
+    presets = [preset_type(**dict(zip(columns, row, strict=True))) for row in rows]
+    return {preset.name: preset for preset in presets}
+
+
+def find_preset(presets: dict, name: str, stage: str):
+    """The preset called ``name``; a clear error naming the ones that exist."""
+    try:
+        return presets[name]
+    except KeyError:
+        raise ValueError(f"unknown {stage} preset {name!r}; expected one of {', '.join(presets)}") from None
 
 
 @dataclass(frozen=True)
@@ -26,8 +60,10 @@ class LossWeights:
 
 
 @dataclass(frozen=True)
-class Stage1Preset:
+class Stage1Preset(PresetRecord):
     """Every size and schedule of one stage-1 configuration."""
+
+    loss_weights_type: ClassVar[type] = LossWeights
 
     name: str
     uv_size: int  # side of the UV maps; one Gaussian per valid texel
@@ -61,102 +97,39 @@ class Stage1Preset:
         """Number of UV texels, the most Gaussians one subject can have."""
         return self.uv_size * self.uv_size
 
-    def replace(self, **changes) -> Stage1Preset:
-        """A copy with some fields changed (e.g. ``iterations`` for a short test run)."""
-        return dataclasses.replace(self, **changes)
 
-    def to_json(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_json(cls, data: dict) -> Stage1Preset:
-        data = dict(data)
-        data["loss"] = LossWeights(**data.get("loss", {}))
-        return cls(**data)
-
-
-PRESETS: dict[str, Stage1Preset] = {
-    "tiny": Stage1Preset(
-        name="tiny",
-        uv_size=64,
-        z_id_dim=32,
-        z_l_dim=4,
-        start_channels=64,
-        min_channels=16,
-        mesh_hidden=128,
-        crop_size=128,
-        batch_size=4,
-        iterations=600,
-        offset_anneal_iterations=200,
-        warmup_iterations=200,
-        checkpoint_every=100,
-        log_every=10,
-        image_every=100,
-        held_out_cameras=2,
+PRESETS: dict[str, Stage1Preset] = preset_table(
+    Stage1Preset,
+    (
+        "name",
+        "uv_size",
+        "z_id_dim",
+        "z_l_dim",
+        "start_channels",
+        "min_channels",
+        "mesh_hidden",
+        "crop_size",
+        "batch_size",
+        "iterations",
+        "offset_anneal_iterations",
+        "warmup_iterations",
+        "checkpoint_every",
+        "log_every",
+        "image_every",
+        "held_out_cameras",
     ),
-    "demo": Stage1Preset(
-        name="demo",
-        uv_size=128,
-        z_id_dim=64,
-        z_l_dim=4,
-        start_channels=128,
-        min_channels=16,
-        mesh_hidden=256,
-        crop_size=128,
-        batch_size=4,
-        iterations=3000,
-        offset_anneal_iterations=1000,
-        warmup_iterations=600,
-        checkpoint_every=250,
-        log_every=20,
-        image_every=250,
-        held_out_cameras=2,
-    ),
-    "small": Stage1Preset(
-        name="small",
-        uv_size=256,
-        z_id_dim=128,
-        z_l_dim=4,
-        start_channels=256,
-        min_channels=16,
-        mesh_hidden=256,
-        crop_size=512,
-        batch_size=8,
-        iterations=60_000,
-        offset_anneal_iterations=20_000,
-        warmup_iterations=5_000,
-        checkpoint_every=1000,
-        log_every=50,
-        image_every=1000,
-        held_out_cameras=4,
-    ),
-    "paper": Stage1Preset(
-        name="paper",
-        uv_size=1024,
-        z_id_dim=256,
-        z_l_dim=4,
-        start_channels=256,
-        min_channels=16,
-        mesh_hidden=256,
-        crop_size=1024,
-        batch_size=8,
-        iterations=300_000,
-        offset_anneal_iterations=100_000,
-        warmup_iterations=20_000,
-        checkpoint_every=5000,
-        log_every=100,
-        image_every=5000,
-        held_out_cameras=8,
-    ),
-}
+    [
+        ("tiny", 64, 32, 4, 64, 16, 128, 128, 4, 600, 200, 200, 100, 10, 100, 2),
+        ("demo", 128, 64, 4, 128, 16, 256, 128, 4, 3000, 1000, 600, 250, 20, 250, 2),
+        ("small", 256, 128, 4, 256, 16, 256, 512, 8, 60_000, 20_000, 5_000, 1000, 50, 1000, 4),
+        ("paper", 1024, 256, 4, 256, 16, 256, 1024, 8, 300_000, 100_000, 20_000, 5000, 100, 5000, 8),
+    ],
+)
 
 
 def get_preset(name: str) -> Stage1Preset:
     """The preset called ``name`` (tiny, demo, small, paper)."""
-    try:
-        return PRESETS[name]
-    except KeyError:
-        raise ValueError(f"unknown stage-1 preset {name!r}; expected one of {', '.join(PRESETS)}") from None
+    return find_preset(PRESETS, name, "stage-1")
 
 
 # Stage 2: the relighting UNet on top of a frozen stage-1 model (paper §3.2), and the single-stage
@@ -178,11 +151,13 @@ class Stage2LossWeights:
 
 
 @dataclass(frozen=True)
-class Stage2Preset:
+class Stage2Preset(PresetRecord):
     """Sizes and schedules of the stage-2 relighting network (and of the single-stage baseline).
 
     The UV size comes from the stage-1 run; the UNet goes down from it to an 8×8 bottleneck.
     """
+
+    loss_weights_type: ClassVar[type] = Stage2LossWeights
 
     name: str
     sh_order: int  # order of the diffuse SH transfer d (and of the light SH)
@@ -213,72 +188,29 @@ class Stage2Preset:
         if not 0.0 <= self.full_on_fraction <= 1.0:
             raise ValueError(f"stage-2 preset {self.name!r}: full_on_fraction must be in [0, 1]")
 
-    def replace(self, **changes) -> Stage2Preset:
-        """A copy with some fields changed."""
-        return dataclasses.replace(self, **changes)
 
-    def to_json(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_json(cls, data: dict) -> Stage2Preset:
-        data = dict(data)
-        data["loss"] = Stage2LossWeights(**data.get("loss", {}))
-        return cls(**data)
-
-
-STAGE2_PRESETS: dict[str, Stage2Preset] = {
-    "tiny": Stage2Preset(
-        name="tiny",
-        sh_order=3,
-        base_channels=16,
-        max_channels=64,
-        crop_size=128,
-        batch_size=4,
-        iterations=600,
-        normal_anneal_iterations=200,
-        albedo_anneal_iterations=200,
+STAGE2_PRESETS: dict[str, Stage2Preset] = preset_table(
+    Stage2Preset,
+    (
+        "name",
+        "sh_order",
+        "base_channels",
+        "max_channels",
+        "crop_size",
+        "batch_size",
+        "iterations",
+        "normal_anneal_iterations",
+        "albedo_anneal_iterations",
+        "checkpoint_every",
+        "log_every",
     ),
-    "demo": Stage2Preset(
-        name="demo",
-        sh_order=4,
-        base_channels=16,
-        max_channels=128,
-        crop_size=128,
-        batch_size=4,
-        iterations=3000,
-        normal_anneal_iterations=1000,
-        albedo_anneal_iterations=1000,
-        checkpoint_every=250,
-        log_every=20,
-    ),
-    "small": Stage2Preset(
-        name="small",
-        sh_order=6,
-        base_channels=16,
-        max_channels=256,
-        crop_size=512,
-        batch_size=8,
-        iterations=60_000,
-        normal_anneal_iterations=10_000,
-        albedo_anneal_iterations=20_000,
-        checkpoint_every=1000,
-        log_every=50,
-    ),
-    "paper": Stage2Preset(
-        name="paper",
-        sh_order=8,
-        base_channels=16,
-        max_channels=256,
-        crop_size=1024,
-        batch_size=8,
-        iterations=300_000,
-        normal_anneal_iterations=10_000,
-        albedo_anneal_iterations=100_000,
-        checkpoint_every=5000,
-        log_every=100,
-    ),
-}
+    [
+        ("tiny", 3, 16, 64, 128, 4, 600, 200, 200, 100, 10),
+        ("demo", 4, 16, 128, 128, 4, 3000, 1000, 1000, 250, 20),
+        ("small", 6, 16, 256, 512, 8, 60_000, 10_000, 20_000, 1000, 50),
+        ("paper", 8, 16, 256, 1024, 8, 300_000, 10_000, 100_000, 5000, 100),
+    ],
+)
 
 
 def with_overrides(preset: Stage1Preset | Stage2Preset, **changes) -> Stage1Preset | Stage2Preset:
@@ -289,9 +221,4 @@ def with_overrides(preset: Stage1Preset | Stage2Preset, **changes) -> Stage1Pres
 
 def get_stage2_preset(name: str) -> Stage2Preset:
     """The stage-2 preset called ``name`` (tiny, demo, small, paper)."""
-    try:
-        return STAGE2_PRESETS[name]
-    except KeyError:
-        raise ValueError(
-            f"unknown stage-2 preset {name!r}; expected one of {', '.join(STAGE2_PRESETS)}"
-        ) from None
+    return find_preset(STAGE2_PRESETS, name, "stage-2")

@@ -1,4 +1,4 @@
-"""Rendering stage-1 Gaussians into cameras, orbit cameras, and display images.
+"""Rendering stage-1 Gaussians into cameras, orbit cameras, comparison strips and image grids.
 
 Renders go through :func:`relightanyone.render.rasterize.rasterize` (pure PyTorch / C++ on CPU, gsplat on
 CUDA) with a black background: training and metrics only look at masked pixels.
@@ -11,8 +11,8 @@ import math
 import numpy as np
 import torch
 
-from relightanyone.align.colour import linear_to_srgb
 from relightanyone.model.networks.gaussians import Gaussians
+from relightanyone.render.camera import look_at_w2c
 from relightanyone.render.rasterize import rasterize
 
 
@@ -30,53 +30,43 @@ def render_gaussians(
         raise ValueError(f"{batch} Gaussian sets but {K.shape[0]} intrinsics and {w2c.shape[0]} poses")
     images, alphas = [], []
     for index in range(batch):
-        image, alpha, _ = rasterize(
-            gaussians.means[index],
-            gaussians.quats[index],
-            gaussians.scales[index],
-            gaussians.opacities[index],
-            gaussians.colours[index],
-            w2c[index : index + 1],
-            K[index : index + 1],
-            width,
-            height,
+        image, alpha = render_views(
+            gaussians, K[index : index + 1], w2c[index : index + 1], width, height, index
         )
         images.append(image)
         alphas.append(alpha)
     return torch.cat(images), torch.cat(alphas)
 
 
-def render_cameras(
-    gaussians: Gaussians, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int
-) -> torch.Tensor:
-    """Render one Gaussian set (batch of 1) into C cameras: K (C, 3, 3), w2c (C, 4, 4) -> (C, 3, H, W)."""
+def render_views(
+    gaussians: Gaussians,
+    K: torch.Tensor,
+    w2c: torch.Tensor,
+    width: int,
+    height: int,
+    sample: int = 0,
+    colours: torch.Tensor | None = None,
+    background: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Render Gaussian set ``sample`` of ``gaussians`` into C cameras: K (C, 3, 3), w2c (C, 4, 4).
 
-    image, _, _ = rasterize(
-        gaussians.means[0],
-        gaussians.quats[0],
-        gaussians.scales[0],
-        gaussians.opacities[0],
-        gaussians.colours[0],
+    colours: (C, N, F) per-camera features (e.g. relit colours) in place of the set's own (N, 3) colours;
+    background: (F,) or (C, F), black by default. Returns image (C, F, H, W) and alpha (C, 1, H, W).
+    """
+
+    image, alpha, _ = rasterize(
+        gaussians.means[sample],
+        gaussians.quats[sample],
+        gaussians.scales[sample],
+        gaussians.opacities[sample],
+        gaussians.colours[sample] if colours is None else colours,
         w2c,
         K,
         width,
         height,
+        background=background,
     )
-    return image
-
-
-def look_at_w2c(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """(4, 4) OpenCV world-to-camera (x right, y down, z forward) of a camera at ``eye`` looking at ``target``."""
-    forward = target - eye
-    forward = forward / np.linalg.norm(forward)
-    right = np.cross(forward, up)
-    right = right / np.linalg.norm(right)
-    down = np.cross(forward, right)
-    rotation = np.stack([right, down, forward])  # rows: camera axes in world coordinates
-    w2c = np.eye(4)
-    w2c[:3, :3] = rotation
-    w2c[:3, 3] = -rotation @ eye
-    return w2c
+    return image, alpha
 
 
 def orbit_cameras(
@@ -97,13 +87,6 @@ def orbit_cameras(
         )
         poses.append(look_at_w2c(centre + offset, centre, np.array([0.0, 1.0, 0.0])))
     return np.repeat(np.asarray(K, dtype=np.float64)[None], count, axis=0), np.stack(poses)
-
-
-def to_display(image: torch.Tensor) -> np.ndarray:
-    """Linear (3, H, W) -> sRGB-encoded uint8 (H, W, 3) for PNGs and TensorBoard."""
-
-    encoded = linear_to_srgb(image.detach().clamp(0.0, 1.0).float())
-    return (encoded.clamp(0.0, 1.0).permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
 
 
 def comparison_strip(target: torch.Tensor, render: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

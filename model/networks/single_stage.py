@@ -22,9 +22,9 @@ from relightanyone.model.networks.gaussians import (
     Gaussians,
     TexelBinding,
     assemble_gaussians,
+    bind_template,
     gather_texels,
     geometry_output_bias,
-    texel_spacing,
 )
 from relightanyone.model.networks.presets import Stage1Preset
 from relightanyone.model.networks.reflectance import (
@@ -59,15 +59,10 @@ class SingleStageModel(nn.Module):
         subject_count: int,
     ) -> None:
         super().__init__()
-        if binding.uv_size != preset.uv_size:
-            raise ValueError(
-                f"UV binding is {binding.uv_size}² but preset {preset.name!r} needs {preset.uv_size}²"
-            )
-        template_vertices = torch.as_tensor(template_vertices, dtype=torch.float32)
+        template_vertices, self.spacing = bind_template(preset, template_vertices, binding)
         self.preset = preset
         self.sh_order = sh_order
         self.binding = binding
-        self.spacing = texel_spacing(template_vertices, binding.faces, binding.count)
         centre, _ = head_frame(template_vertices)
         self.register_buffer("head_centre", centre)
         self.register_buffer("albedo_scale", torch.ones(3))  # see Stage2Model: set by the trainer

@@ -24,9 +24,9 @@ from relightanyone.model.networks.gaussians import (
     Gaussians,
     TexelBinding,
     assemble_gaussians,
+    bind_template,
     colour_output_bias,
     geometry_output_bias,
-    texel_spacing,
 )
 from relightanyone.model.networks.presets import Stage1Preset
 
@@ -55,14 +55,9 @@ class Stage1Model(nn.Module):
         uncalibrated: torch.Tensor | None = None,
     ) -> None:
         super().__init__()
-        if binding.uv_size != preset.uv_size:
-            raise ValueError(
-                f"UV binding is {binding.uv_size}² but preset {preset.name!r} needs {preset.uv_size}²"
-            )
-        template_vertices = torch.as_tensor(template_vertices, dtype=torch.float32)
+        template_vertices, self.spacing = bind_template(preset, template_vertices, binding)
         self.preset = preset
         self.binding = binding
-        self.spacing = texel_spacing(template_vertices, binding.faces, binding.count)
         self.identity_codes = nn.Parameter(torch.randn(subject_count, preset.z_id_dim) * CODE_INIT_STD)
         self.lighting_codes = nn.Parameter(torch.randn(dataset_count, preset.z_l_dim) * CODE_INIT_STD)
         self.colour_matrices = nn.Parameter(torch.eye(3).repeat(dataset_count, 1, 1))

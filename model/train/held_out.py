@@ -2,7 +2,8 @@
 
 Every training subject keeps a few cameras out of training (:class:`relightanyone.model.train.data.Stage1Data`).
 They are rendered at the stored image size with the subject's own lighting code and compared with
-the ground truth over the mask: PSNR on linear RGB clamped to [0, 1], SSIM with an 11×11 window.
+the ground truth by the toolkit's metrics (:mod:`relightanyone.model.metrics`): per-view masked PSNR and
+SSIM, averaged over the views of a dataset.
 """
 
 from __future__ import annotations
@@ -10,10 +11,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from relightanyone.model.metrics import masked_psnr, masked_ssim
 from relightanyone.model.networks.render import render_gaussians
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.train.data import Stage1Data, ViewRef
-from relightanyone.model.train.losses import masked_psnr, masked_ssim
 
 
 @torch.no_grad()
@@ -64,10 +65,8 @@ def evaluate_held_out(
         psnrs, ssims = [], []
         for view in views:
             out = render_view(model, data, view, use_lighting, dataset_colour)
-            psnrs.append(masked_psnr(out["render"], out["image"], out["mask"]))
-            ssims.append(
-                float(masked_ssim(out["render"].clamp(0, 1), out["image"].clamp(0, 1), out["mask"])[0])
-            )
+            psnrs.append(float(masked_psnr(out["render"], out["image"], out["mask"])[0]))
+            ssims.append(float(masked_ssim(out["render"], out["image"], out["mask"])[0]))
         results[name] = {
             "psnr": float(np.mean(psnrs)) if psnrs else float("nan"),
             "ssim": float(np.mean(ssims)) if ssims else float("nan"),

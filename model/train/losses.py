@@ -1,4 +1,4 @@
-"""Stage-1 objective and image metrics.
+"""Stage-1 objective and the image terms every training objective shares (L1, SSIM, background composite).
 
 L = 10·L1 + 0.2·(1 − SSIM) + 0.4·vertex L2 + 0.01·scale bound + λ_t·‖δt‖², λ_t annealed 1 → 0.001.
 Image terms count masked pixels only; training composites render and target over a random background
@@ -9,15 +9,13 @@ unit, for which its 0.4 weight was chosen); δt and scales are in texel spacings
 
 from __future__ import annotations
 
-import math
-
 import torch
 from kornia.metrics import ssim as kornia_ssim
 
+from relightanyone.model.metrics import SSIM_WINDOW
 from relightanyone.model.networks.gaussians import MAX_SCALE, MIN_SCALE, Gaussians
 from relightanyone.model.networks.presets import LossWeights
 
-SSIM_WINDOW = 11
 METRES_TO_MM = 1000.0
 
 
@@ -48,14 +46,16 @@ def masked_l1(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) ->
     return _per_sample_masked_mean((render - target).abs(), mask)
 
 
-def masked_ssim(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Per-sample mean SSIM (11×11 Gaussian window, kornia) over masked pixels, (B,).
+def ssim_loss(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """The SSIM training term: per-sample ``1 − SSIM`` (11×11 Gaussian window, kornia), (B,).
 
-    Both images are masked first so the unmodelled background does not enter the windows.
+    The SSIM map is averaged with the soft mask as weights, on unclipped images, so it stays differentiable
+    everywhere; both images are masked first so the unmodelled background does not enter the windows.
+    (The SSIM *metric*, :func:`relightanyone.model.metrics.masked_ssim`, clips and uses a binary mask.)
     Shapes as :func:`masked_l1`.
     """
     _check_images(render, target, mask)
-    return _per_sample_masked_mean(kornia_ssim(render * mask, target * mask, SSIM_WINDOW), mask)
+    return 1.0 - _per_sample_masked_mean(kornia_ssim(render * mask, target * mask, SSIM_WINDOW), mask)
 
 
 def composite_over_background(
@@ -77,17 +77,6 @@ def composite_over_background(
     """
     bg = background.to(render.dtype)[:, :, None, None]
     return render + (1.0 - alpha) * bg, target * mask + bg * (1.0 - mask)
-
-
-def masked_psnr(
-    render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, max_value: float = 1.0
-) -> float:
-    """PSNR in dB over masked pixels (images clamped to [0, max_value]). Shapes as :func:`masked_l1`."""
-    _check_images(render, target, mask)
-    weight = mask.expand_as(render)
-    error = ((render.clamp(0, max_value) - target.clamp(0, max_value)) ** 2 * weight).sum()
-    mse = float(error / weight.sum().clamp(min=1.0))
-    return float("inf") if mse == 0 else 10.0 * math.log10(max_value**2 / mse)
 
 
 def vertex_l2(
@@ -131,6 +120,36 @@ def offset_weight(iteration: int, weights: LossWeights, anneal_iterations: int) 
     return float(weights.offset_start * (weights.offset_end / weights.offset_start) ** fraction)
 
 
+def weighted_sum(
+    terms: dict[str, torch.Tensor], weights: dict[str, float], total: torch.Tensor | None = None
+) -> torch.Tensor:
+    """``total + Σ weights[name] · terms[name]``, added left to right in the order of ``weights``."""
+    for name, weight in weights.items():
+        term = weight * terms[name]
+        total = term if total is None else total + term
+    return total
+
+
+def geometry_terms(
+    vertices: torch.Tensor,
+    tracked_vertices: torch.Tensor,
+    gaussians: Gaussians,
+    has_mesh: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """The geometry terms of the stage-1 objective, (B,) each: ``geometry`` (vertex L2), ``scale`` (scale
+    bound) and ``offset`` (‖δt‖²). Shapes as :func:`stage1_loss`."""
+    return {
+        "geometry": vertex_l2(vertices, tracked_vertices, has_mesh),
+        "scale": scale_bound_loss(gaussians.scales_preclip),
+        "offset": offset_l2(gaussians.offsets),
+    }
+
+
+def geometry_weights(weights: LossWeights, offset_lambda: float) -> dict[str, float]:
+    """The weights of :func:`geometry_terms`: vertex L2, scale bound, then λ_t."""
+    return {"geometry": weights.geometry, "scale": weights.scale, "offset": offset_lambda}
+
+
 def stage1_loss(
     render: torch.Tensor,
     target: torch.Tensor,
@@ -148,18 +167,11 @@ def stage1_loss(
     """
     terms = {
         "l1": masked_l1(render, target, mask),
-        "ssim": 1.0 - masked_ssim(render, target, mask),
-        "geometry": vertex_l2(vertices, tracked_vertices, has_mesh),
-        "scale": scale_bound_loss(gaussians.scales_preclip),
-        "offset": offset_l2(gaussians.offsets),
+        "ssim": ssim_loss(render, target, mask),
+        **geometry_terms(vertices, tracked_vertices, gaussians, has_mesh),
     }
-    per_sample = (
-        weights.l1 * terms["l1"]
-        + weights.ssim * terms["ssim"]
-        + weights.geometry * terms["geometry"]
-        + weights.scale * terms["scale"]
-        + offset_lambda * terms["offset"]
-    )
+    image_weights = {"l1": weights.l1, "ssim": weights.ssim}
+    per_sample = weighted_sum(terms, image_weights | geometry_weights(weights, offset_lambda))
     total = per_sample.mean()
     logged = {name: float(value.detach().mean()) for name, value in terms.items()}
     logged["total"] = float(total.detach())

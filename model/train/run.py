@@ -14,18 +14,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relightanyone.align.colour import linear_to_display
 from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import TEMPLATE_NAME
-from relightanyone.model.networks.gaussians import Gaussians, TexelBinding
+from relightanyone.model.networks.gaussians import Gaussians, load_template_binding
 from relightanyone.model.networks.presets import Stage1Preset
-from relightanyone.model.networks.render import grid, orbit_cameras, save_png, to_display
+from relightanyone.model.networks.render import grid, orbit_cameras, render_views, save_png
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
-from relightanyone.render.mesh import load_obj
-from relightanyone.render.rasterize import rasterize
-from relightanyone.render.uv_binding import UVBinding
 
 FOREGROUND_ALPHA = 0.5
 LIGHTING_GRID_NAME = "lighting_grid.png"
@@ -76,15 +74,9 @@ def load_run(run_dir: Path) -> Stage1Run:
     info = json.loads(info_path.read_text())
     checkpoint = load_checkpoint(run_dir / CHECKPOINT_NAME)
     preset = Stage1Preset.from_json(checkpoint["preset"])
-    mesh = load_obj(run_dir / TEMPLATE_NAME)
-    uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, preset.uv_size)
-    binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
+    template_vertices, binding = load_template_binding(run_dir / TEMPLATE_NAME, preset.uv_size)
     model = Stage1Model(
-        preset,
-        torch.from_numpy(mesh.vertices).float(),
-        binding,
-        len(checkpoint["subjects"]),
-        len(checkpoint["datasets"]),
+        preset, template_vertices, binding, len(checkpoint["subjects"]), len(checkpoint["datasets"])
     )
     model.load_state_dict(checkpoint["model"])
     model.eval()
@@ -145,20 +137,14 @@ def mean_foreground_colour(images: torch.Tensor, alphas: torch.Tensor) -> np.nda
 
 @torch.no_grad()
 def render_with_alpha(gaussians: Gaussians, K: np.ndarray, w2c: np.ndarray, width: int, height: int):
-    """Render one Gaussian set into C cameras: (images (C, 3, H, W), alphas (C, 1, H, W))."""
+    """Render one Gaussian set into C cameras given as numpy K (C, 3, 3) and w2c (C, 4, 4).
 
-    image, alpha, _ = rasterize(
-        gaussians.means[0],
-        gaussians.quats[0],
-        gaussians.scales[0],
-        gaussians.opacities[0],
-        gaussians.colours[0],
-        torch.tensor(w2c, dtype=torch.float32),
-        torch.tensor(K, dtype=torch.float32),
-        width,
-        height,
+    Returns images (C, 3, H, W) and alphas (C, 1, H, W).
+    """
+
+    return render_views(
+        gaussians, torch.tensor(K, dtype=torch.float32), torch.tensor(w2c, dtype=torch.float32), width, height
     )
-    return image, alpha
 
 
 def render_subject(
@@ -204,7 +190,7 @@ def render_subject(
     safe_subject = run.subjects[subject_index].replace("/", "_")
     for name, image in zip(names, images, strict=True):
         path = out_dir / f"{safe_subject}_{lighting}_{name}.png"
-        save_png(path, to_display(image[0]))
+        save_png(path, linear_to_display(image[0]).transpose(1, 2, 0))
         files.append(str(path))
     report = {
         "subject": run.subjects[subject_index],
@@ -264,7 +250,7 @@ def lighting_alignment_grid(run: Stage1Run, out_path: Path) -> dict:
                 if lighting == dataset
                 else render_with_alpha(gaussians, K, w2c, width, height)
             )
-            display = to_display(image[0])
+            display = linear_to_display(image[0]).transpose(1, 2, 0)
             size = size or display.shape[:2]
             row.append(_fit(display, size))
             if lighting != dataset:

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from relightanyone.errors import InputError
+from relightanyone.render.camera import crop_intrinsics
 
 BATCH_STREAM = 0
 CROP_STREAM = 1
@@ -101,14 +102,6 @@ def crop_array(array: np.ndarray, box: CropBox) -> np.ndarray:
     return out
 
 
-def crop_intrinsics(K: np.ndarray, box: CropBox) -> np.ndarray:
-    """K (3, 3) of the stored image -> K of the crop (principal point shifted by the crop origin)."""
-    cropped = np.array(K, dtype=np.float64, copy=True)
-    cropped[0, 2] -= box.x0
-    cropped[1, 2] -= box.y0
-    return cropped
-
-
 def random_crop(item: dict[str, Any], size: int, rng: np.random.Generator) -> dict[str, Any]:
     """A dataset item (:class:`~relightanyone.format.torch_dataset.NormalizedTorchDataset`) cropped to the
     window :func:`choose_crop` draws from its mask: image (3, size, size), mask (1, size, size) and K
@@ -118,7 +111,7 @@ def random_crop(item: dict[str, Any], size: int, rng: np.random.Generator) -> di
         **item,
         "image": torch.from_numpy(crop_array(item["image"].numpy(), box)),
         "mask": torch.from_numpy(crop_array(item["mask"].numpy(), box)),
-        "K": torch.from_numpy(crop_intrinsics(item["K"].numpy(), box)),
+        "K": torch.from_numpy(crop_intrinsics(item["K"].numpy(), box.x0, box.y0)),
     }
 
 

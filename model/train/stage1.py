@@ -25,11 +25,12 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 
+from relightanyone.align.colour import linear_to_display
 from relightanyone.errors import InputError
 from relightanyone.format.schema import TEMPLATE_NAME
-from relightanyone.model.networks.gaussians import TexelBinding
+from relightanyone.model.networks.gaussians import load_template_binding
 from relightanyone.model.networks.presets import Stage1Preset
-from relightanyone.model.networks.render import comparison_strip, render_gaussians, to_display
+from relightanyone.model.networks.render import comparison_strip, render_gaussians
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.train.checkpoint import (
     capture_rng_state,
@@ -43,8 +44,6 @@ from relightanyone.model.train.losses import composite_over_background, offset_w
 from relightanyone.model.train.memory import estimate_training_memory, format_memory
 from relightanyone.model.train.run_files import CHECKPOINT_NAME, METRICS_NAME, RUN_INFO_NAME
 from relightanyone.model.train.sampling import background_colours, balanced_batch
-from relightanyone.render.mesh import load_obj
-from relightanyone.render.uv_binding import UVBinding
 
 # Fields that shape the network: a checkpoint can only resume a run that agrees on all of them.
 ARCHITECTURE_FIELDS = ("uv_size", "z_id_dim", "z_l_dim", "start_channels", "min_channels", "mesh_hidden")
@@ -106,13 +105,9 @@ def build_model(
     unknown = sorted(set(uncalibrated) - set(data.names))
     if unknown:
         raise InputError(f"--uncalibrated names {unknown} are not among the datasets {data.names}")
-    mesh = load_obj(template_path)
-    uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, preset.uv_size)
-    binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
+    template_vertices, binding = load_template_binding(template_path, preset.uv_size)
     flags = torch.tensor([name in uncalibrated for name in data.names])
-    return Stage1Model(
-        preset, torch.from_numpy(mesh.vertices).float(), binding, len(data.subjects), len(data.names), flags
-    )
+    return Stage1Model(preset, template_vertices, binding, len(data.subjects), len(data.names), flags)
 
 
 def average_gradients(model: torch.nn.Module, world_size: int) -> None:
@@ -262,7 +257,9 @@ def train_stage1(config: Stage1Config) -> dict:
                 writer.add_scalar("time/seconds_per_iteration", step_seconds / steps, done)
             if done % preset.image_every == 0 or done == preset.iterations:
                 strip = comparison_strip(batch["image"][0], render[0].detach(), batch["mask"][0])
-                writer.add_image("train/truth|render|error", to_display(strip), done, dataformats="HWC")
+                writer.add_image(
+                    "train/truth|render|error", linear_to_display(strip), done, dataformats="CHW"
+                )
         if group.is_main and (done % preset.checkpoint_every == 0 or done == preset.iterations):
             save_checkpoint(
                 checkpoint_path, _checkpoint_payload(model, optimizer, done, preset, data, config)

@@ -37,7 +37,7 @@ from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import LIGHTS_NAME, TEMPLATE_NAME, make_mesh_key
 from relightanyone.format.torch_dataset import LEARNED, NormalizedTorchDataset, collate_rows, image_hwc
-from relightanyone.model.networks.gaussians import TexelBinding
+from relightanyone.model.networks.gaussians import load_template_binding
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
 from relightanyone.model.networks.reflectance import (
     FULL_ON_PATTERN,
@@ -63,12 +63,12 @@ from relightanyone.model.train.checkpoint import (
 )
 from relightanyone.model.train.losses import (
     composite_over_background,
+    geometry_terms,
+    geometry_weights,
     masked_l1,
-    masked_ssim,
-    offset_l2,
     offset_weight,
-    scale_bound_loss,
-    vertex_l2,
+    ssim_loss,
+    weighted_sum,
 )
 from relightanyone.model.train.run import load_run
 from relightanyone.model.train.run_files import CHECKPOINT_NAME, METRICS_NAME, RUN_INFO_NAME
@@ -79,10 +79,8 @@ from relightanyone.model.train.sampling import (
     random_crop,
 )
 from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
-from relightanyone.render.mesh import load_obj
 from relightanyone.render.sh import lambertian_transfer
 from relightanyone.render.shading import point_light_sh
-from relightanyone.render.uv_binding import UVBinding
 
 TRAIN_SPLIT = "train"
 PATTERN_STREAM = 2  # generator stream of the (full-on or OLAT, row) draws; crops use CROP_STREAM
@@ -292,17 +290,9 @@ class Stage2Trainer:
             raise FileNotFoundError(
                 f"{self.template_path}: template mesh missing; ingest writes it beside manifest.json"
             )
-        mesh = load_obj(self.template_path)
-        uv = UVBinding.from_mesh(
-            mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, self.stage1_preset.uv_size
-        )
-        binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
+        template_vertices, binding = load_template_binding(self.template_path, self.stage1_preset.uv_size)
         self.trainable = SingleStageModel(
-            self.stage1_preset,
-            self.preset.sh_order,
-            torch.from_numpy(mesh.vertices).float(),
-            binding,
-            len(self.frames.subjects),
+            self.stage1_preset, self.preset.sh_order, template_vertices, binding, len(self.frames.subjects)
         ).to(self.device)
         self.albedo_per_colour = None
         self.trainable.albedo_scale.copy_(self._albedo_scale_from_images())
@@ -409,17 +399,20 @@ class Stage2Trainer:
         )
         terms = {
             "l1": masked_l1(compared, image, mask),
-            "ssim": 1.0 - masked_ssim(compared, image, mask),
+            "ssim": ssim_loss(compared, image, mask),
             "negative_diffuse": negative_diffuse_loss(relit.diffuse),
             "monochrome": monochrome_transfer_loss(params.transfer),
             "normal": normal_residual_loss(params.normal_residual),
         }
-        per_sample = (
-            weights.l1 * terms["l1"]
-            + weights.ssim * terms["ssim"]
-            + weights.negative_diffuse * terms["negative_diffuse"]
-            + weights.monochrome * terms["monochrome"]
-            + normal_lambda * terms["normal"]
+        per_sample = weighted_sum(
+            terms,
+            {
+                "l1": weights.l1,
+                "ssim": weights.ssim,
+                "negative_diffuse": weights.negative_diffuse,
+                "monochrome": weights.monochrome,
+                "normal": normal_lambda,
+            },
         )
         logged = {"normal_lambda": normal_lambda}
         if self.albedo_per_colour is not None:
@@ -434,16 +427,9 @@ class Stage2Trainer:
             logged["albedo_lambda"] = albedo_lambda
         if self.config.single_stage:
             geometry = self.stage1_preset.loss
-            terms["geometry"] = vertex_l2(vertices, batch["tracked"], batch["has_mesh"])
-            terms["scale"] = scale_bound_loss(gaussians.scales_preclip)
-            terms["offset"] = offset_l2(gaussians.offsets)
+            terms.update(geometry_terms(vertices, batch["tracked"], gaussians, batch["has_mesh"]))
             offset_lambda = offset_weight(iteration, geometry, self.stage1_preset.offset_anneal_iterations)
-            per_sample = (
-                per_sample
-                + geometry.geometry * terms["geometry"]
-                + geometry.scale * terms["scale"]
-                + offset_lambda * terms["offset"]
-            )
+            per_sample = weighted_sum(terms, geometry_weights(geometry, offset_lambda), per_sample)
         total = per_sample.mean()
         logged.update({name: float(value.detach().mean()) for name, value in terms.items()})
         logged["total"] = float(total.detach())

@@ -19,22 +19,13 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from relightanyone.hashing import sha256_file
 from relightanyone.pipelines.dag.record import STAGE_LOG_NAME, STAGE_RECORD_NAME
 
 RUNNER_FILE_NAMES = frozenset({STAGE_RECORD_NAME, STAGE_LOG_NAME})
-HASH_CHUNK_BYTES = 1 << 20
 
 # (size, mtime_ns, sha256 hex) of one file
 FileEntry = tuple[int, int, str]
-
-
-def sha256_of_file(path: Path) -> str:
-    """Hex sha256 of the bytes of ``path``."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while chunk := handle.read(HASH_CHUNK_BYTES):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 class HashCache:
@@ -56,7 +47,7 @@ class HashCache:
         cached = self.entries.get(str(path))
         if cached is not None and cached[0] == stat.st_size and cached[1] == stat.st_mtime_ns:
             return cached
-        entry = (stat.st_size, stat.st_mtime_ns, sha256_of_file(path))
+        entry = (stat.st_size, stat.st_mtime_ns, sha256_file(path))
         self.hashed_files += 1
         self.entries[str(path)] = entry
         return entry

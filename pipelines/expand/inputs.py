@@ -7,8 +7,8 @@ import json
 from pathlib import Path
 
 from relightanyone.errors import InputError
-from relightanyone.format.arrow_io import sha256_file
 from relightanyone.format.schema import Provenance
+from relightanyone.hashing import sha256_file
 from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
 from relightanyone.pipelines.expand.task import cache_relightable_model

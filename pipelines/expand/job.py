@@ -27,7 +27,6 @@ from pathlib import Path
 from tqdm import tqdm
 
 from relightanyone.errors import InputError
-from relightanyone.format.arrow_io import sha256_file
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import (
     LIGHTS_NAME,
@@ -38,6 +37,7 @@ from relightanyone.format.schema import (
     fingerprint_config,
 )
 from relightanyone.format.shards import ShardWriter
+from relightanyone.hashing import sha256_file
 from relightanyone.model.device import resolve_device
 from relightanyone.model.fit.fitter import FitSettings
 from relightanyone.parallel import Executor, TaskResources

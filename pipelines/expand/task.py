@@ -7,7 +7,6 @@ order-dependent runs, so a subject's bytes are the same in this process, a pool 
 
 from __future__ import annotations
 
-import hashlib
 import random
 import time
 from collections.abc import Callable
@@ -18,6 +17,7 @@ from relightanyone.format.codecs import encode_image
 from relightanyone.format.colour_alignment import read_learned_colour_matrix
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import MeshRow, build_image_row, make_mesh_key
+from relightanyone.hashing import sha256_bytes
 from relightanyone.model.fit.fitter import load_relightable_model
 from relightanyone.pipelines.expand.avatar import decoded_avatar, fitted_avatar
 from relightanyone.pipelines.expand.render import expansion_lightings, render_lightings
@@ -122,7 +122,7 @@ def _render_subject(writer, settings, task, on_images) -> dict:
             pixels = images.permute(0, 2, 3, 1).cpu().numpy()
             # The images are in the model's colour space: the learned matrix after the source's own.
             colour_matrix = row.colour_matrix if learned is None else learned @ row.colour_matrix
-            source_sha256 = hashlib.sha256(row.image).hexdigest()
+            source_sha256 = sha256_bytes(row.image)
             for item, image in zip(lightings, pixels, strict=True):
                 part.add(
                     build_image_row(

@@ -8,7 +8,6 @@ record batch is recorded at write time, so a single row is read by seeking to it
 
 from __future__ import annotations
 
-import hashlib
 import os
 from pathlib import Path
 
@@ -24,15 +23,6 @@ def ipc_write_options(compression_level: int = ZSTD_LEVEL) -> pa.ipc.IpcWriteOpt
     return pa.ipc.IpcWriteOptions(
         compression=pa.Codec("zstd", compression_level=compression_level), use_threads=False
     )
-
-
-def sha256_file(path: Path, chunk_bytes: int = 1 << 22) -> str:
-    """Hex sha256 of a file, read in chunks."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while chunk := handle.read(chunk_bytes):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def fsync_dir(path: Path) -> None:

@@ -24,6 +24,7 @@ from relightanyone.format.schema import (
     build_image_row,
 )
 from relightanyone.format.shards import ShardWriter
+from relightanyone.render.camera import look_at_w2c
 
 
 def face_like_image(height: int, width: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -45,25 +46,6 @@ def face_like_image(height: int, width: int, seed: int = 0) -> tuple[np.ndarray,
     return np.clip(image, 0.0, None).astype(np.float32), mask
 
 
-def look_at_w2c(
-    eye: np.ndarray,
-    target: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    up: tuple[float, float, float] = (0.0, 1.0, 0.0),
-) -> np.ndarray:
-    """(4, 4) OpenCV world-to-camera matrix of a camera at ``eye`` (3,) looking at ``target`` (3,), +y up."""
-    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-    forward = target - eye
-    forward = forward / np.linalg.norm(forward)
-    right = np.cross(forward, -up)
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    rotation = np.stack([right, down, forward])  # rows: camera x, y, z in world
-    w2c = np.eye(4)
-    w2c[:3, :3] = rotation
-    w2c[:3, 3] = -rotation @ eye
-    return w2c
-
-
 def example_rows(
     dataset: str = "example",
     subjects: tuple[str, ...] = ("s000",),
@@ -79,7 +61,7 @@ def example_rows(
     for s, subject in enumerate(subjects):
         for c in range(cameras):
             angle = 2 * np.pi * c / max(cameras, 1)
-            w2c = look_at_w2c(np.array([np.sin(angle), 0.1, np.cos(angle)]))
+            w2c = look_at_w2c([np.sin(angle), 0.1, np.cos(angle)], np.zeros(3), [0.0, 1.0, 0.0])
             K = np.array([[1.2 * width, 0, (width - 1) / 2], [0, 1.2 * width, (height - 1) / 2], [0, 0, 1]])
             for p, pattern in enumerate(patterns):
                 image, mask = face_like_image(height, width, seed=1000 * s + 10 * c + p)

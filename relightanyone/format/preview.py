@@ -6,26 +6,22 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from relightanyone.align.colour import linear_to_display
+
 LABEL_HEIGHT = 18
 OUTLINE_RGB = (255, 64, 32)
 
 
 def linear_to_srgb_preview(image: np.ndarray, exposure: float | None = None) -> np.ndarray:
-    """(H, W, 3) linear float -> (H, W, 3) uint8 sRGB. ``exposure`` multiplies the linear values; ``None``
-    maps the 99th percentile of the non-black pixels to 0.9 so dim captures stay visible."""
-    import warnings
-
-    with warnings.catch_warnings():  # colour-science warns that matplotlib (plotting only) is absent
-        warnings.simplefilter("ignore")
-        import colour
-
+    """(H, W, 3) linear float -> (H, W, 3) uint8 sRGB (:func:`~relightanyone.align.colour.linear_to_display`).
+    ``exposure`` multiplies the linear values; ``None`` maps the 99th percentile of the non-black pixels to 0.9
+    so dim captures stay visible."""
     image = np.asarray(image, dtype=np.float32)
     if exposure is None:
         lit = image[image.max(axis=-1) > 1e-4]
         reference = float(np.percentile(lit, 99)) if lit.size else 1.0
         exposure = 0.9 / reference if reference > 0 else 1.0
-    encoded = colour.cctf_encoding(np.clip(image * exposure, 0.0, 1.0), function="sRGB")
-    return np.round(np.clip(encoded, 0.0, 1.0) * 255.0).astype(np.uint8)
+    return linear_to_display(image, exposure)
 
 
 def _fit_tile(image: np.ndarray, tile: int) -> tuple[np.ndarray, float]:

@@ -56,7 +56,6 @@ from relightanyone.format.arrow_io import (
     fsync_dir,
     read_message_at,
     read_table_file,
-    sha256_file,
     write_table_file,
 )
 from relightanyone.format.schema import (
@@ -80,6 +79,7 @@ from relightanyone.format.schema import (
     QuarantineEntry,
     SchemaError,
 )
+from relightanyone.hashing import sha256_file
 
 DEFAULT_MAX_SHARD_BYTES = 256 << 20
 PARTS_DIR = "_parts"

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from relightanyone.format.arrow_io import read_table_file, sha256_file
+from relightanyone.format.arrow_io import read_table_file
 from relightanyone.format.codecs import CodecError, decode_image, decode_mask
 from relightanyone.format.reader import IncompleteDatasetError, load_manifest
 from relightanyone.format.schema import (
@@ -34,6 +34,7 @@ from relightanyone.format.schema import (
     camera_problems,
 )
 from relightanyone.format.shards import PARTS_DIR, dataset_dirs
+from relightanyone.hashing import sha256_file
 
 
 @dataclass(frozen=True)

@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from helpers.stage1_world import RADIUS, sphere_dataset, sphere_image_row, sphere_mesh, tiny_stage1_preset
-from relightanyone.format.examples import look_at_w2c
 from relightanyone.format.schema import LightRow
 from relightanyone.model.networks.presets import get_stage2_preset
 from relightanyone.model.train.stage1 import Stage1Config, train_stage1
 from relightanyone.model.train.stage2 import Stage2Config, train_stage2
+from relightanyone.render.camera import look_at_w2c
 
 SIZE = 24
 LIGHTS = np.array([[0.8, 0.4, 0.6], [-0.8, 0.3, 0.6], [0.0, 0.9, 0.5], [0.0, -0.5, 0.9]])
@@ -113,7 +113,7 @@ def sphere_camera(c: int) -> tuple[np.ndarray, np.ndarray]:
     """(K (3, 3), w2c (4, 4)) of camera ``cam{c:02d}`` of both datasets."""
     K = np.array([[2.2 * SIZE, 0, (SIZE - 1) / 2], [0, 2.2 * SIZE, (SIZE - 1) / 2], [0, 0, 1.0]])
     angle = 0.5 * (c - 1.5)
-    return K, look_at_w2c(0.5 * np.array([np.sin(angle), 0.1, np.cos(angle)]))
+    return K, look_at_w2c(0.5 * np.array([np.sin(angle), 0.1, np.cos(angle)]), np.zeros(3), [0.0, 1.0, 0.0])
 
 
 def true_olat_image(subject: str, camera: int, light: int) -> tuple[np.ndarray, np.ndarray]:

@@ -16,7 +16,6 @@ import numpy as np
 
 from helpers.kill_handshake import IMPORT_HELPERS
 from relightanyone.format.codecs import encode_image, encode_mask
-from relightanyone.format.examples import look_at_w2c
 from relightanyone.format.schema import (
     DatasetInfo,
     ImageRow,
@@ -27,6 +26,7 @@ from relightanyone.format.schema import (
 )
 from relightanyone.format.shards import ShardWriter
 from relightanyone.model.networks.presets import get_preset
+from relightanyone.render.camera import look_at_w2c
 
 RADIUS = 0.1
 
@@ -191,7 +191,9 @@ def write_dataset(
                 part.add_mesh(sphere_mesh(subject, scale))
                 for c in range(cameras):
                     angle = 2 * np.pi * c / cameras
-                    w2c = look_at_w2c(0.5 * np.array([np.sin(angle), 0.2, np.cos(angle)]))
+                    w2c = look_at_w2c(
+                        0.5 * np.array([np.sin(angle), 0.2, np.cos(angle)]), np.zeros(3), [0.0, 1.0, 0.0]
+                    )
                     image, mask = render_sphere(scale, albedo, K, w2c, size)
                     camera = f"cam{c:02d}"
                     source = f"{subject}/{camera}.exr"
