@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from relightanyone.align.colour import write_learned_colour_matrix
 from relightanyone.format.codecs import decode_image, decode_mask
+from relightanyone.format.colour_alignment import write_learned_colour_matrix
 from relightanyone.format.examples import example_rows
 from relightanyone.format.schema import DatasetInfo, Provenance, make_image_key
 from relightanyone.format.shards import ShardWriter

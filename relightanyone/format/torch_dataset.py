@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from relightanyone.align.colour import read_learned_colour_matrix
 from relightanyone.errors import InputError
+from relightanyone.format.colour_alignment import read_learned_colour_matrix
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import ImageRow
 
