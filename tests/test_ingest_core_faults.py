@@ -145,6 +145,14 @@ def test_alpha_maps_multiply_the_mesh_mask(capture, tmp_path):
         (lambda d: d["cameras"]["c2"]["w2c"][0].__setitem__(0, float("nan")), "camera 'c2' key 'w2c'"),
         (lambda d: d["cameras"]["c3"].__setitem__("w2c", np.zeros((4, 4)).tolist()), "camera 'c3' key 'w2c'"),
         (lambda d: d.__setitem__("units", "inch"), "'units' must be one of"),
+        (
+            lambda d: d.__setitem__("colour_matrices", {"c1": np.zeros((3, 3)).tolist()}),
+            "colour_matrices['c1']: the colour matrix is singular",
+        ),
+        (
+            lambda d: d.__setitem__("colour_matrices", {"c2": [[1, 0, 0], [0, 1, 0], [1, 1, 0]]}),
+            "colour_matrices['c2']: the colour matrix is singular",
+        ),
     ],
 )
 def test_bad_calibration_names_file_camera_and_key(capture, edit, message):

@@ -13,7 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from relightanyone.align.colour import COLOUR_ALIGNMENT_FILENAME, write_learned_colour_matrix
+from relightanyone.align.colour import (
+    COLOUR_ALIGNMENT_FILENAME,
+    colour_matrix_problem,
+    write_learned_colour_matrix,
+)
 from relightanyone.format.dataset_view import link_dataset_view
 from relightanyone.format.reader import load_manifest
 from relightanyone.model.networks.presets import Stage1Preset
@@ -24,12 +28,10 @@ WARMUP_DIR = "warmup"
 
 def correction_from_render_matrix(render_to_dataset: np.ndarray) -> np.ndarray:
     """C (3, 3) mapping shared colour to the dataset's -> M = C⁻¹ mapping the dataset's colour to shared."""
-    matrix = np.asarray(render_to_dataset, dtype=np.float64)
-    if matrix.shape != (3, 3) or not np.all(np.isfinite(matrix)):
-        raise ValueError(f"learned colour matrix must be a finite 3×3, got {matrix.tolist()}")
-    if abs(np.linalg.det(matrix)) < 1e-8:
-        raise ValueError(f"learned colour matrix is singular ({matrix.tolist()}); train the warm-up longer")
-    return np.linalg.inv(matrix)
+    problem = colour_matrix_problem(render_to_dataset)
+    if problem is not None:
+        raise ValueError(f"learned colour matrix: {problem}; train the warm-up longer")
+    return np.linalg.inv(np.asarray(render_to_dataset, dtype=np.float64))
 
 
 def colour_cast_error(render_to_dataset: np.ndarray, true_casts: list[np.ndarray]) -> dict[str, float]:
