@@ -125,6 +125,7 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
     ):
         from relightanyone.ingest.records import AdapterOptions, LayoutError
         from relightanyone.ingest.runner import found_lines, ingest_dataset, prepare
+        from relightanyone.ingest.tracking import AlignmentError
 
         adapter = load_adapter(command_name)
         options = AdapterOptions(
@@ -153,9 +154,19 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         if dry_run:
             click.echo("dry run: nothing written")
             return
-        summary = ingest_dataset(
-            plan, tracking, out, preset, workers=workers, executor=executor, progress=True, prepared=prepared
-        )
+        try:
+            summary = ingest_dataset(
+                plan,
+                tracking,
+                out,
+                preset,
+                workers=workers,
+                executor=executor,
+                progress=True,
+                prepared=prepared,
+            )
+        except AlignmentError as error:  # raised before anything is written (the rig cannot be placed)
+            raise click.ClickException(str(error)) from None
         for line in summary.lines():
             click.echo(line)
 
