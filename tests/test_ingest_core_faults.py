@@ -125,6 +125,18 @@ def test_corrupt_image_missing_camera_and_bad_mesh_are_quarantined(capture, tmp_
     assert summary.reasons == {"decode": 1, "plan": 1, "align": 4}
 
 
+def test_quarantine_reasons_are_the_same_bytes_on_every_run(capture, tmp_path):
+    image = capture / "images" / "s2" / "000001" / "c3.png"
+    image.unlink()
+    image.with_suffix(".avif").write_bytes(b"\x00\x00\x00\x1cftypavif" + bytes(64))  # corrupt AVIF
+    first = ingest(capture, tmp_path / "first")
+    second = ingest(capture, tmp_path / "second")
+    (entry,) = NormalizedDataset(first.path).quarantine()
+    assert "c3.avif" in entry.reason and "not a readable AVIF image" in entry.reason
+    assert " at 0x" not in entry.reason, entry.reason
+    assert (first.path / "quarantine.jsonl").read_bytes() == (second.path / "quarantine.jsonl").read_bytes()
+
+
 def test_alpha_maps_multiply_the_mesh_mask(capture, tmp_path):
     import cv2
 

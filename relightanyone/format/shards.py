@@ -39,6 +39,7 @@ are never trusted: they are rewritten or deleted.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -84,6 +85,14 @@ DEFAULT_MAX_SHARD_BYTES = 256 << 20
 PARTS_DIR = "_parts"
 _TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 _SHARD_NAME = re.compile(r"^images-(\d{5})\.arrow$")
+# A Python object's default repr carries its memory address, which differs from run to run.
+_OBJECT_ADDRESS = re.compile(r"\s+at 0x[0-9A-Fa-f]+(?=>)")
+
+
+def deterministic_entry(entry: QuarantineEntry) -> QuarantineEntry:
+    """``entry`` with the memory addresses of object reprs dropped from its reason (a decoder's error may
+    name ``<_io.BytesIO object at 0x7f...>``), so the same input gives the same ``quarantine.jsonl``."""
+    return dataclasses.replace(entry, reason=_OBJECT_ADDRESS.sub("", entry.reason))
 
 
 class QuarantineLog:
@@ -197,7 +206,7 @@ class PartWriter:
 
     def quarantine(self, entry: QuarantineEntry) -> None:
         """Record a refused input item (first reason per item wins)."""
-        self._quarantine.setdefault(entry.item, entry)
+        self._quarantine.setdefault(entry.item, deterministic_entry(entry))
 
     def close(self) -> None:
         """Finish the task's files and publish the task folder."""
@@ -290,7 +299,7 @@ class ShardWriter:
 
     def quarantine(self, entry: QuarantineEntry) -> bool:
         """Record a refusal that belongs to no task (append-safe; deduplicated by item)."""
-        return QuarantineLog(self.parts_dir / "_quarantine.jsonl").append(entry)
+        return QuarantineLog(self.parts_dir / "_quarantine.jsonl").append(deterministic_entry(entry))
 
     def commit(self, progress: bool = False) -> Manifest:
         """Merge all finished parts in key order into shards, write the tables and the manifest (last)."""
