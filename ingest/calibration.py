@@ -113,10 +113,11 @@ def _get(mapping: Mapping[str, Any], key: str, path: str | Path, field: str) -> 
     return mapping[key]
 
 
-def _load_json(source: str | Path | Mapping[str, Any]) -> tuple[Any, str]:
-    """Read a JSON file (or take an already-parsed dict) and return it with the name used in errors."""
+def _load_json(source: str | Path | Mapping[str, Any], name: str | Path | None = None) -> tuple[Any, str]:
+    """Read a JSON file (or take an already-parsed dict, read from the file ``name`` when given) and return
+    it with the name used in errors."""
     if isinstance(source, Mapping):
-        return source, "<dict>"
+        return source, str(name) if name is not None else "<dict>"
     path = Path(source)
     try:
         return json.loads(path.read_text()), str(path)
@@ -291,7 +292,10 @@ _CAMERA_FIELDS = (
 
 
 def from_transforms_json(
-    source: str | Path | Mapping[str, Any], per: str = "frame", vhap_downsample: int | None = None
+    source: str | Path | Mapping[str, Any],
+    per: str = "frame",
+    vhap_downsample: int | None = None,
+    name: str | Path | None = None,
 ) -> Cameras:
     """Read a VHAP / NeRF ``transforms.json`` (camera-to-world in OpenGL axes, intrinsics per frame or top level).
 
@@ -301,10 +305,11 @@ def from_transforms_json(
     principal-point coordinates by ``-0.5 * (1 - 1/n)``. Optional ``k1, k2, k3, k4, p1, p2`` become OpenCV
     coefficients. ``per="frame"`` returns one camera per frame (named by ``file_path``); ``per="camera"`` one per
     distinct ``camera_id`` / ``camera_index`` (first frame wins; all frames of a camera must agree).
+    ``name``: the file an already-parsed ``source`` was read from, named in errors.
     """
     if per not in ("frame", "camera"):
         raise ValueError(f"per must be 'frame' or 'camera', got {per!r}")
-    data, name = _load_json(source)
+    data, name = _load_json(source, name)
     frames = _get(data, "frames", name, "")
     if not isinstance(frames, list) or not frames:
         raise CalibrationError(name, "frames", "expected a non-empty list")

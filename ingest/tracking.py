@@ -156,17 +156,26 @@ class VhapSubject:
         return None
 
 
+def _integer(entry: dict, field: str, where: str) -> int:
+    """``entry[field]`` as an int; ``ValueError`` naming ``where`` and the field for NaN, text, a list..."""
+    value = entry[field]
+    try:
+        return int(value)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"{where}: field '{field}' is not a frame number ({value!r})") from None
+
+
 def _native_frame(entry: dict, where: str) -> int:
     """Native frame number of a transforms.json frame: ``timestep_index_original``, else the digits of
     ``timestep_id``, else ``timestep_index``."""
     if "timestep_index_original" in entry:
-        return int(entry["timestep_index_original"])
+        return _integer(entry, "timestep_index_original", where)
     ident = str(entry.get("timestep_id", ""))
     digits = "".join(ch for ch in ident.split("_")[-1] if ch.isdigit())
     if digits:
         return int(digits)
     if "timestep_index" in entry:
-        return int(entry["timestep_index"])
+        return _integer(entry, "timestep_index", where)
     raise ValueError(f"{where}: frame has no timestep_index_original, timestep_id or timestep_index")
 
 
@@ -182,8 +191,13 @@ def read_vhap_subject(folder: Path) -> VhapSubject:
     path = folder / "transforms.json"
     if not path.is_file():
         raise FileNotFoundError(f"{path} is missing: expected a VHAP export (transforms.json + meshes/)")
-    document = json.loads(path.read_text())
-    rig = from_transforms_json(document if "frames" in document else path, per="camera")
+    try:
+        document = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise ValueError(f"{path}: not valid JSON ({error}); is it truncated?") from None
+    if not isinstance(document, dict):
+        raise ValueError(f"{path}: expected an object with 'frames', got {type(document).__name__}")
+    rig = from_transforms_json(document, per="camera", name=path)
     cameras = {}
     for i, name in enumerate(rig.names or ()):
         cameras[str(name)] = TrackerCamera(
@@ -199,7 +213,10 @@ def read_vhap_subject(folder: Path) -> VhapSubject:
         frame = _native_frame(entry, where)
         relative = entry.get("mesh_path")
         if relative is None:
-            relative = f"meshes/{int(entry.get('timestep_index', 0)):05d}.obj"
+            index = _integer(entry, "timestep_index", where) if "timestep_index" in entry else 0
+            relative = f"meshes/{index:05d}.obj"
+        if not isinstance(relative, str):
+            raise ValueError(f"{where}: field 'mesh_path' must be a path, got {relative!r}")
         meshes.setdefault(frame, folder / relative)
     canonical = folder / "canonical.obj"
     return VhapSubject(folder, cameras, meshes, canonical if canonical.is_file() else None)

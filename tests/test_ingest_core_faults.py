@@ -19,6 +19,7 @@ from relightanyone.ingest import custom
 from relightanyone.ingest.decode import DecodeError, TaskDecoder
 from relightanyone.ingest.records import AdapterOptions, ImageRef, LayoutError
 from relightanyone.ingest.runner import ingest_dataset
+from relightanyone.ingest.tracking import read_vhap_subject
 
 CAMERA_NAMES = ("c0", "c1", "c2", "c3")
 SIZE = (96, 128)  # width, height
@@ -175,6 +176,33 @@ def test_bad_calibration_names_file_camera_and_key(capture, edit, message):
     with pytest.raises(LayoutError) as error:
         custom.plan(capture, AdapterOptions())
     assert message in str(error.value) and "cameras.json" in str(error.value)
+
+
+def _transforms(**changes) -> str:
+    """A one-camera VHAP ``transforms.json`` text with ``changes`` applied to its frame."""
+    frame = {"camera_id": "c0", "transform_matrix": np.eye(4).tolist(), "fl_x": 100.0, "cx": 50.0}
+    frame.update({"cy": 50.0, "w": 100, "h": 100, "timestep_index": 0, **changes})
+    return json.dumps({"frames": [frame]}, indent=1)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (_transforms()[:200], "not valid JSON"),  # truncated
+        (_transforms(fl_x=float("nan")), "field 'frames[0].fl_x': contains NaN"),
+        (_transforms(transform_matrix=[[float("nan")] * 4] * 4), "frames[0].transform_matrix"),
+        (_transforms(timestep_index_original=float("nan")), "field 'timestep_index_original'"),
+        (_transforms(timestep_index="first"), "field 'timestep_index' is not a frame number"),
+        (_transforms(mesh_path=7), "field 'mesh_path' must be a path"),
+        ("[]", "expected an object"),
+    ],
+)
+def test_tracking_errors_name_the_file(tmp_path, text, message):
+    (tmp_path / "transforms.json").write_text(text)
+    with pytest.raises(ValueError) as error:
+        read_vhap_subject(tmp_path)
+    assert str(error.value).startswith(str(tmp_path / "transforms.json")), error.value
+    assert message in str(error.value) and "<dict>" not in str(error.value), error.value
 
 
 def test_missing_layout_pieces_are_named(tmp_path):
