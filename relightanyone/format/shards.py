@@ -26,7 +26,8 @@ Files under ``<dataset>/``:
     the current one passes ``max_shard_bytes``. Same rows -> same bytes, whatever order or process the
     tasks ran in.
 ``index.arrow``, ``meshes.arrow``, ``lights.arrow``, ``quarantine.jsonl``
-    the key index (key, metadata, shard, byte offset of the row's record batch), tables and refusals.
+    the key index (key, metadata, shard, byte offset of the row's record batch), tables and refusals
+    (one line per refused item; the manifest lists it with its hash, ``rows`` = entries).
 ``manifest.json``
     written last, atomically, with the sha256 and size of every file above. A dataset without it is
     incomplete and readers refuse it. ``commit`` removes ``_parts`` only after the manifest is durable.
@@ -329,7 +330,7 @@ class ShardWriter:
         index_entry = self._write_index(index_rows)
         meshes_entry = self._write_meshes(parts)
         lights_entry = self._publish_lights()
-        quarantined = self._write_quarantine(parts)
+        quarantine_entry = self._write_quarantine(parts)
         counts = {
             "images": len(located),
             "subjects": len({r["subject"] for r in index_rows}),
@@ -339,7 +340,16 @@ class ShardWriter:
             "meshes": meshes_entry.rows if meshes_entry else 0,
             "lights": lights_entry.rows if lights_entry else 0,
         }
-        manifest = Manifest(self.info, counts, shards, index_entry, meshes_entry, lights_entry, quarantined)
+        manifest = Manifest(
+            self.info,
+            counts,
+            shards,
+            index_entry,
+            meshes_entry,
+            lights_entry,
+            quarantined=quarantine_entry.rows,
+            quarantine=quarantine_entry,
+        )
         atomic_write_bytes(self.dataset_dir / MANIFEST_NAME, manifest.dumps().encode("utf-8"))
         shutil.rmtree(self.parts_dir)
         return manifest
@@ -420,7 +430,7 @@ class ShardWriter:
         fsync_dir(self.dataset_dir)
         return self._entry(LIGHTS_NAME, read_table_file(path).num_rows)
 
-    def _write_quarantine(self, parts: Iterable[Path]) -> int:
+    def _write_quarantine(self, parts: Iterable[Path]) -> FileEntry:
         entries: dict[str, QuarantineEntry] = {}
         logs = [QuarantineLog(part / QUARANTINE_NAME) for part in parts]
         logs.append(QuarantineLog(self.parts_dir / "_quarantine.jsonl"))
@@ -429,7 +439,7 @@ class ShardWriter:
                 entries.setdefault(entry.item, entry)
         lines = "".join(entries[item].to_json_line() + "\n" for item in sorted(entries))
         atomic_write_bytes(self.dataset_dir / QUARANTINE_NAME, lines.encode("utf-8"))
-        return len(entries)
+        return self._entry(QUARANTINE_NAME, len(entries))
 
 
 def dataset_dirs(root: Path) -> list[Path]:
