@@ -33,7 +33,7 @@ from relightanyone.align.geometry import (
     umeyama,
     w2c_to_canonical,
 )
-from relightanyone.ingest.calibration import from_transforms_json
+from relightanyone.ingest.calibration import from_transforms_json, load_json
 from relightanyone.render.mesh import faces_touching, read_obj, read_obj_vertices
 
 NECK_MASK_NAMES = ("neck_mask.txt", "template_neck_mask.txt")
@@ -185,19 +185,12 @@ def read_vhap_subject(folder: Path) -> VhapSubject:
     Cameras come from :func:`relightanyone.ingest.calibration.from_transforms_json` (OpenGL
     camera-to-world and flipped ``cy`` undone there), one per ``camera_id``.
     """
-    import json
-
     folder = Path(folder)
     path = folder / "transforms.json"
     if not path.is_file():
         raise FileNotFoundError(f"{path} is missing: expected a VHAP export (transforms.json + meshes/)")
-    try:
-        document = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise ValueError(f"{path}: not valid JSON ({error}); is it truncated?") from None
-    if not isinstance(document, dict):
-        raise ValueError(f"{path}: expected an object with 'frames', got {type(document).__name__}")
-    rig = from_transforms_json(document, per="camera", name=path)
+    document, _ = load_json(path)
+    rig = from_transforms_json(document, per="camera", name=path)  # checks 'frames' and every camera
     cameras = {}
     for i, name in enumerate(rig.names or ()):
         cameras[str(name)] = TrackerCamera(
