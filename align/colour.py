@@ -35,6 +35,10 @@ COLOUR_ALIGNMENT_VERSION = 1
 FACEOLAT_DISPLAY_GAMMA = 2.2
 
 CCM_METHODS = ("Cheung 2004", "Finlayson 2015")
+# A colour matrix must keep all three colour directions: its smallest singular value at least this
+# fraction of its largest. An all-zero or rank-deficient matrix maps some colours to black (or noise
+# amplified a million times), so it is refused wherever a matrix enters.
+MIN_COLOUR_MATRIX_SINGULAR_RATIO = 1e-6
 
 
 def _is_torch(x: Any) -> bool:
@@ -62,6 +66,31 @@ def _as_matrix(M: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} contains NaN or infinite values")
     return arr
+
+
+def colour_matrix_problem(M: Any) -> str | None:
+    """Why ``M (3, 3)`` cannot be a colour matrix (not 3×3, not finite, singular), or None when it can."""
+    arr = np.asarray(M, dtype=np.float64)
+    if arr.shape != (3, 3):
+        return f"the colour matrix must be 3×3, got shape {arr.shape}"
+    if not np.all(np.isfinite(arr)):
+        return "the colour matrix contains NaN or infinite values"
+    singular = np.linalg.svd(arr, compute_uv=False)
+    if not singular[0] > 0 or singular[-1] < MIN_COLOUR_MATRIX_SINGULAR_RATIO * singular[0]:
+        return (
+            f"the colour matrix is singular (singular values {np.round(singular, 9).tolist()}): it maps some "
+            "colours to black"
+        )
+    return None
+
+
+def check_colour_matrix(M: Any, where: str) -> np.ndarray:
+    """``M`` as a ``(3, 3)`` float64 colour matrix; ``ValueError`` naming ``where`` and the problem otherwise
+    (see :func:`colour_matrix_problem`)."""
+    problem = colour_matrix_problem(M)
+    if problem is not None:
+        raise FileFormatError(f"{where}: {problem}")
+    return np.asarray(M, dtype=np.float64).copy()
 
 
 def _as_tensor(value: Any, shape: tuple[int, ...], name: str, like: Any) -> Any:
@@ -247,6 +276,7 @@ def read_nersemble_v1_affine(path: str | os.PathLike) -> np.ndarray:
         raise FileFormatError(f"{path}: NeRSemble colour affine must be at least 3×4, got shape {A.shape}")
     if not np.all(np.isfinite(A[:3, :4])):
         raise FileFormatError(f"{path}: NeRSemble colour affine contains NaN or infinite values")
+    check_colour_matrix(A[:3, :3], str(path))
     return A[:3, :4].copy()
 
 
@@ -284,10 +314,7 @@ def read_faceolat_colour_matrix(path: str | os.PathLike) -> tuple[np.ndarray, np
         raise FileFormatError(
             f"{path}: last row of the colour matrix must be '0 0 0 1', got {values[3].tolist()}"
         )
-    M, black = values[:3, :3].copy(), values[:3, 3].copy()
-    if abs(np.linalg.det(M)) < 1e-9:
-        raise FileFormatError(f"{path}: the 3×3 colour matrix is singular")
-    return M, black
+    return check_colour_matrix(values[:3, :3], str(path)), values[:3, 3].copy()
 
 
 def read_nersemble_colour_calibration(
@@ -331,7 +358,7 @@ def read_nersemble_colour_calibration(
         if not np.all(np.isfinite(ccm)):
             raise FileFormatError(f"{source}: CCM of camera {serial} contains NaN or infinite values")
         offset = ccm[:, 3].copy() if ccm.shape[1] == 4 else np.zeros(3)
-        result[str(serial)] = (ccm[:, :3].copy(), offset)
+        result[str(serial)] = (check_colour_matrix(ccm[:, :3], f"{source}: CCM of camera {serial}"), offset)
     return result
 
 
@@ -474,6 +501,7 @@ def parse_colour_alignment(data: bytes, where: str) -> np.ndarray:
             f"{COLOUR_ALIGNMENT_VERSION})"
         )
     try:
-        return _as_matrix(document.get("matrix"), (3, 3), "field 'matrix'")
+        matrix = _as_matrix(document.get("matrix"), (3, 3), "field 'matrix'")
     except (TypeError, ValueError) as exc:
         raise FileFormatError(f"{where}: {exc}") from exc
+    return check_colour_matrix(matrix, f"{where}: field 'matrix'")

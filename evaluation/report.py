@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
+from urllib.parse import quote
 
 import numpy as np
 
@@ -35,6 +37,25 @@ ROW_NAMES = {
     "without_lighting_code": "without z_l swap (own dataset's code)",
 }
 BETTER = {"psnr": 1, "ssim": 1, "rmse": -1, "lpips": -1}
+# Characters that start Markdown syntax (emphasis, links, images, code, table cells) anywhere in a line.
+MARKDOWN_SPECIAL = re.compile(r"([\\`*_\[\]()!|])")
+
+
+def markdown_text(value: object) -> str:
+    """``value`` as literal Markdown text: names and paths come from datasets and the command line, so
+    Markdown syntax in them is backslash-escaped and ``& < >`` become entities (no HTML, no links, no
+    broken table cells); a line break becomes a space."""
+    text = " ".join(str(value).splitlines())
+    text = text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+    return MARKDOWN_SPECIAL.sub(r"\\\1", text)
+
+
+def markdown_code(value: object) -> str:
+    """``value`` as a Markdown code span, fenced with more backticks than any run inside it."""
+    text = " ".join(str(value).splitlines())
+    fence = "`" * (max((len(run) for run in re.findall(r"`+", text)), default=0) + 1)
+    pad = " " if text.startswith("`") or text.endswith("`") else ""
+    return f"{fence}{pad}{text}{pad}{fence}"
 
 
 def error_map(prediction: np.ndarray, truth: np.ndarray, mask: np.ndarray, exposure: float) -> np.ndarray:
@@ -114,10 +135,12 @@ def metric_table(
     lines.append("|---" * (len(metrics) + 2) + "|")
     for name, values in rows.items():
         cells = " | ".join(_format(m, values.get(m)) for m in metrics)
-        lines.append(f"| {ROW_NAMES.get(name, name)} | {cells} | {values.get('images', '–')} |")
+        lines.append(
+            f"| {markdown_text(ROW_NAMES.get(name, name))} | {cells} | {values.get('images', '–')} |"
+        )
     for name, values in (extra or {}).items():
         cells = " | ".join(_format(m, values.get(m)) if m in values else "see paper" for m in metrics)
-        lines.append(f"| {name} | {cells} | – |")
+        lines.append(f"| {markdown_text(name)} | {cells} | – |")
     return lines
 
 
@@ -220,6 +243,10 @@ def write_report(out: Path, results: dict, tables: dict, input_images: dict[str,
     results["goals"] = {k: v for k, v in checked.items()}
     results["grids"] = grids
     settings = results.get("settings", {})
+    inputs = results.get("inputs", {})
+    datasets = ", ".join(
+        f"{markdown_code(k)} = {markdown_code(v)}" for k, v in inputs.get("datasets", {}).items()
+    )
     lines = [
         "# Evaluation on the synthetic world",
         "",
@@ -228,10 +255,10 @@ def write_report(out: Path, results: dict, tables: dict, input_images: dict[str,
         "",
         "## Setup",
         "",
-        f"- world: `{results.get('inputs', {}).get('world')}`",
-        f"- datasets: {', '.join(f'`{k}` = `{v}`' for k, v in results.get('inputs', {}).get('datasets', {}).items())}",
-        f"- runs: stage 1 `{results.get('inputs', {}).get('stage1')}`, stage 2 `{results.get('inputs', {}).get('stage2')}`, "
-        f"single-stage `{results.get('inputs', {}).get('single_stage') or 'not given'}`",
+        f"- world: {markdown_code(inputs.get('world'))}",
+        f"- datasets: {datasets}",
+        f"- runs: stage 1 {markdown_code(inputs.get('stage1'))}, stage 2 {markdown_code(inputs.get('stage2'))}, "
+        f"single-stage {markdown_code(inputs.get('single_stage') or 'not given')}",
         f"- fit budget: {settings.get('inversion_iterations')} inversion + {settings.get('finetune_iterations')} "
         f"finetuning iterations, {settings.get('views_per_step')} views per step",
         f"- limits: max views {settings.get('max_views')}, lights {len(results.get('light_indices', []))} "
@@ -278,16 +305,21 @@ def write_report(out: Path, results: dict, tables: dict, input_images: dict[str,
             ["Mean over subjects (images: total):", ""] + metric_table(entry["mean"], metrics, extra) + [""]
         )
         for key, subject in entry["subjects"].items():
-            lines += [f"**{key}** — truth: {subject['source']}; cameras: {', '.join(subject['cameras'])}", ""]
+            cameras = ", ".join(markdown_text(c) for c in subject["cameras"])
+            lines += [
+                f"**{markdown_text(key)}** — truth: {markdown_text(subject['source'])}; cameras: {cameras}",
+                "",
+            ]
             if subject.get("seen_in_training") and table not in TRAINING_SUBJECT_TABLES:
+                runs = ", ".join(markdown_text(r) for r in subject["seen_in_training"])
                 lines += [
-                    f"> **Not held out:** {key} is a training subject of the {', '.join(subject['seen_in_training'])} "
+                    f"> **Not held out:** {markdown_text(key)} is a training subject of the {runs} "
                     "run(s), so these numbers overstate generalization.",
                     "",
                 ]
             lines += metric_table(subject["metrics"], metrics) + [""]
         for name in grids.get(table, []):
-            lines += [f"![{name}]({name})", ""]
+            lines += [f"![{markdown_text(name)}]({quote(name)})", ""]
     lines += ["## Goals", ""]
     for claim, value in checked.items():
         verdict = "not evaluated" if value is None else ("yes" if value else "**no**")

@@ -108,23 +108,24 @@ def _invert_rigid(T: np.ndarray) -> np.ndarray:
 
 def _get(mapping: Mapping[str, Any], key: str, path: str | Path, field: str) -> Any:
     if not isinstance(mapping, Mapping):
-        raise CalibrationError(path, field, f"expected an object, got {type(mapping).__name__}")
+        raise CalibrationError(path, field or "<file>", f"expected an object, got {type(mapping).__name__}")
     if key not in mapping:
         raise CalibrationError(path, f"{field}.{key}" if field else key, "missing")
     return mapping[key]
 
 
-def _load_json(source: str | Path | Mapping[str, Any]) -> tuple[Any, str]:
-    """Read a JSON file (or take an already-parsed dict) and return it with the name used in errors."""
-    if isinstance(source, Mapping):
-        return source, "<dict>"
+def load_json(source: str | Path | Mapping[str, Any], name: str | Path | None = None) -> tuple[Any, str]:
+    """Read a JSON file and return it with the name used in errors. ``source`` may also be a document
+    already parsed: a dict, or anything when ``name`` gives the file it was read from."""
+    if isinstance(source, Mapping) or name is not None:
+        return source, str(name) if name is not None else "<dict>"
     path = Path(source)
     try:
         return json.loads(path.read_text()), str(path)
     except FileNotFoundError:
         raise CalibrationError(path, "<file>", "file not found") from None
-    except json.JSONDecodeError as error:
-        raise CalibrationError(path, "<file>", f"not valid JSON ({error})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise CalibrationError(path, "<file>", f"not valid JSON ({error}); is it truncated?") from None
 
 
 def _units(units: str) -> float:
@@ -158,7 +159,7 @@ def read_krt_json(
     ``RadialAndTangential`` coefficients are OpenCV (k1, k2, p1, p2). ``image_size`` is (width, height) of the
     images K refers to (the full sensor by default). Camera names are the ``cameraId`` strings.
     """
-    data, name = _load_json(path)
+    data, name = load_json(path)
     scale = _units(units)
     entries = _get(data, "KRT", name, "")
     if not isinstance(entries, list):
@@ -247,7 +248,7 @@ def from_nersemble_params(
     (width, height) defaults to the file's ``width``/``height`` keys, else the full 2200x3208 frame.
     Cameras keep the file's serial order; names are the serials.
     """
-    data, name = _load_json(source)
+    data, name = load_json(source)
     poses = _get(data, "world_2_cam", name, "")
     intrinsics = _get(data, "intrinsics", name, "")
     if not isinstance(poses, Mapping) or not poses:
@@ -292,7 +293,10 @@ _CAMERA_FIELDS = (
 
 
 def from_transforms_json(
-    source: str | Path | Mapping[str, Any], per: str = "frame", vhap_downsample: int | None = None
+    source: str | Path | Mapping[str, Any],
+    per: str = "frame",
+    vhap_downsample: int | None = None,
+    name: str | Path | None = None,
 ) -> Cameras:
     """Read a VHAP / NeRF ``transforms.json`` (camera-to-world in OpenGL axes, intrinsics per frame or top level).
 
@@ -302,10 +306,11 @@ def from_transforms_json(
     principal-point coordinates by ``-0.5 * (1 - 1/n)``. Optional ``k1, k2, k3, k4, p1, p2`` become OpenCV
     coefficients. ``per="frame"`` returns one camera per frame (named by ``file_path``); ``per="camera"`` one per
     distinct ``camera_id`` / ``camera_index`` (first frame wins; all frames of a camera must agree).
+    ``name``: the file an already-parsed ``source`` was read from, named in errors.
     """
     if per not in ("frame", "camera"):
         raise ValueError(f"per must be 'frame' or 'camera', got {per!r}")
-    data, name = _load_json(source)
+    data, name = load_json(source, name)
     frames = _get(data, "frames", name, "")
     if not isinstance(frames, list) or not frames:
         raise CalibrationError(name, "frames", "expected a non-empty list")

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.align.colour import colour_matrix_problem
 from relightanyone.ingest.records import (
     AdapterOptions,
     ColourCalibration,
@@ -135,7 +136,11 @@ def _colour(document: dict, camera: str, path: Path) -> ColourCalibration:
     matrices = document.get("colour_matrices") or {}
     if camera not in matrices:
         return ColourCalibration.identity()
-    M = _matrix(matrices[camera], (3, 3), f"{path}: colour_matrices[{camera!r}]")
+    where = f"{path}: colour_matrices[{camera!r}]"
+    M = _matrix(matrices[camera], (3, 3), where)
+    problem = colour_matrix_problem(M)
+    if problem is not None:
+        raise LayoutError(f"{where}: {problem}")
     return ColourCalibration(matrix=M, source=f"{CAMERAS_FILE}#colour_matrices/{camera}")
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import re
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -69,6 +70,7 @@ CROP_MARGIN = 0.1  # of the head's projected extent, on each side
 BYTES_PER_PIXEL = {"raw-f16": 2.02, "png16": 1.98, "exr-half": 1.38}
 TRACKER_NAME = "VHAP export"
 SHIPPED_TRACKER_NAME = "meshes shipped with the capture"
+SHOWN_REASONS = 5  # refusals and failed frames listed before writing; every one goes to quarantine.jsonl
 _TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 # What the local pool's server imports once, so each forked worker starts with them loaded.
 WORKER_PRELOAD = (
@@ -237,6 +239,47 @@ def mean_similarity(transforms: list[np.ndarray]) -> np.ndarray:
     return similarity(float(np.mean([s for s, _, _ in parts])), R, np.mean([t for _, _, t in parts], axis=0))
 
 
+def planning_reasons(plan: DatasetPlan) -> list[str]:
+    """``item: reason`` of every item refused while planning, in plan order."""
+    return [
+        f"{r.item}: {r.reason}" for r in [*plan.refusals, *(r for s in plan.subjects for r in s.refusals)]
+    ]
+
+
+def alignment_failures(tasks: list[SubjectTask]) -> list[str]:
+    """Why each frame that could not be related to the tracking failed (the reason names subject and frame)."""
+    return [reason for task in tasks for _, reason in sorted(task.failures.items())]
+
+
+def _listed(reasons: list[str]) -> list[str]:
+    """The first ``SHOWN_REASONS`` distinct reasons as indented lines (with how often each occurs), and
+    how many more there are."""
+    counts = Counter(reasons)
+    distinct = list(counts)  # first-seen order
+    lines = [
+        f"    {r}" + (f" ({counts[r]} times)" if counts[r] > 1 else "") for r in distinct[:SHOWN_REASONS]
+    ]
+    if len(distinct) > SHOWN_REASONS:
+        more = len(distinct) - SHOWN_REASONS
+        lines.append(
+            f"    ... and {more} more reasons (a written dataset lists every item in quarantine.jsonl)"
+        )
+    return lines
+
+
+def rig_unplaceable(plan: DatasetPlan, tasks: list[SubjectTask]) -> str | None:
+    """Why the light rig of an OLAT plan cannot be placed (no frame aligned), naming the first refusal;
+    None when it can be or the plan has no rig."""
+    if plan.light_positions is None or any(t.alignments for t in tasks):
+        return None
+    reasons = planning_reasons(plan) + alignment_failures(tasks)
+    first = f"; first: {reasons[0]}" if reasons else ""
+    return (
+        f"{plan.source_root}: no frame could be aligned, so the light rig cannot be placed and nothing was "
+        f"written ({len(reasons)} refusals and failed frames{first})"
+    )
+
+
 def _lights(plan: DatasetPlan, tasks: list[SubjectTask]) -> tuple[list, dict]:
     """Light rows in canonical space and how far the rig lands from there in any one frame (mm).
 
@@ -247,11 +290,10 @@ def _lights(plan: DatasetPlan, tasks: list[SubjectTask]) -> tuple[list, dict]:
 
     if plan.light_positions is None:
         return [], {}
+    unplaceable = rig_unplaceable(plan, tasks)
+    if unplaceable:
+        raise AlignmentError(unplaceable)
     transforms = [a.canonical_from_native for t in tasks for _, a in sorted(t.alignments.items())]
-    if not transforms:
-        raise AlignmentError(
-            f"{plan.source_root}: no frame could be aligned, so the light rig cannot be placed"
-        )
     placement = mean_similarity(transforms)
     positions = lights_to_canonical(plan.light_positions, placement)
     intensities = light_intensities_to_canonical(plan.light_intensities, placement)
@@ -357,12 +399,14 @@ def found_lines(plan: DatasetPlan, settings: IngestSettings, tasks: list[Subject
     worst_mm = max((c["centre_mm"] for c in report["cameras"].values()), default=0.0)
     worst_deg = max((c["angle_deg"] for c in report["cameras"].values()), default=0.0)
     failed = sum(len(t.failures) for t in tasks)
+    refused = planning_reasons(plan)
     lines = [
         f"{plan.source_dataset} ({plan.layout} layout {plan.layout_version}) at {plan.source_root}",
-        f"  {len(plan.subjects)} subjects, {plan.view_count} views, "
-        f"{sum(len(s.refusals) for s in plan.subjects) + len(plan.refusals)} refused while planning",
+        f"  {len(plan.subjects)} subjects, {plan.view_count} views, {len(refused)} refused while planning",
+        *_listed(refused),
         f"  tracking: {sum(len(t.alignments) for t in tasks)} frames aligned, {failed} without a usable mesh; "
         f"native vs tracker cameras agree to {worst_mm:.3f} mm / {worst_deg:.4f} deg",
+        *_listed(alignment_failures(tasks)),
     ]
     worst = sorted(report["cameras"].items(), key=lambda item: -item[1]["centre_mm"])
     for camera, entry in worst[:5]:
@@ -371,6 +415,10 @@ def found_lines(plan: DatasetPlan, settings: IngestSettings, tasks: list[Subject
                 f"    camera {camera}: native and tracker differ by {entry['centre_mm']:.2f} mm, "
                 f"{entry['angle_deg']:.3f} deg"
             )
+    if rig_unplaceable(plan, tasks):
+        lines.append(
+            "  light rig: cannot be placed, no frame could be aligned; the ingest stops before writing"
+        )
     for key, value in sorted(plan.found.items()):
         text = ", ".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
         lines.append(f"  {key}: {text[:200]}")

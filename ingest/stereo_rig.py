@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from relightanyone.align.chart import ChartNotFoundError, fit_chart_correction
+from relightanyone.align.colour import colour_matrix_problem
 from relightanyone.ingest.adapter_common import adapter_plan
 from relightanyone.ingest.calibration import CalibrationError, from_colmap
 from relightanyone.ingest.decode import DecodeError, decode_bytes
@@ -198,8 +199,9 @@ def calibrate_cameras(
             refusals.append(Refusal(name, relative, f"colour chart not usable: {error}"))
             continue
         residuals[name] = residual
-        if not np.isfinite(matrix).all() or abs(np.linalg.det(matrix)) < 1e-12:
-            refusals.append(Refusal(name, relative, "chart fit gave a singular or non-finite colour matrix"))
+        problem = colour_matrix_problem(matrix)
+        if problem is not None:
+            refusals.append(Refusal(name, relative, f"chart fit unusable: {problem}"))
             continue
         if residual["delta_e_mean"] > MAX_CHART_DELTA_E:
             refusals.append(

@@ -34,7 +34,7 @@ from relightanyone.align.geometry import (
 )
 from relightanyone.errors import InputError
 from relightanyone.hashing import sha256_file
-from relightanyone.ingest.calibration import from_transforms_json
+from relightanyone.ingest.calibration import from_transforms_json, load_json
 from relightanyone.render.mesh import faces_touching, read_obj, read_obj_vertices
 
 # File names of a VHAP export: the tracking of one subject, and the topology's template and neck mask.
@@ -159,17 +159,26 @@ class VhapSubject:
         return None
 
 
+def _integer(entry: dict, field: str, where: str) -> int:
+    """``entry[field]`` as an int; ``ValueError`` naming ``where`` and the field for NaN, text, a list..."""
+    value = entry[field]
+    try:
+        return int(value)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"{where}: field '{field}' is not a frame number ({value!r})") from None
+
+
 def _native_frame(entry: dict, where: str) -> int:
     """Native frame number of a transforms.json frame: ``timestep_index_original``, else the digits of
     ``timestep_id``, else ``timestep_index``."""
     if "timestep_index_original" in entry:
-        return int(entry["timestep_index_original"])
+        return _integer(entry, "timestep_index_original", where)
     ident = str(entry.get("timestep_id", ""))
     digits = "".join(ch for ch in ident.split("_")[-1] if ch.isdigit())
     if digits:
         return int(digits)
     if "timestep_index" in entry:
-        return int(entry["timestep_index"])
+        return _integer(entry, "timestep_index", where)
     raise InputError(f"{where}: frame has no timestep_index_original, timestep_id or timestep_index")
 
 
@@ -179,14 +188,12 @@ def read_vhap_subject(folder: Path) -> VhapSubject:
     Cameras come from :func:`relightanyone.ingest.calibration.from_transforms_json` (OpenGL
     camera-to-world and flipped ``cy`` undone there), one per ``camera_id``.
     """
-    import json
-
     folder = Path(folder)
     path = folder / TRANSFORMS_NAME
     if not path.is_file():
         raise FileNotFoundError(f"{path} is missing: expected a VHAP export ({TRANSFORMS_NAME} + meshes/)")
-    document = json.loads(path.read_text())
-    rig = from_transforms_json(document if "frames" in document else path, per="camera")
+    document, _ = load_json(path)
+    rig = from_transforms_json(document, per="camera", name=path)  # checks 'frames' and every camera
     cameras = {}
     for i, name in enumerate(rig.names or ()):
         cameras[str(name)] = TrackerCamera(
@@ -202,7 +209,10 @@ def read_vhap_subject(folder: Path) -> VhapSubject:
         frame = _native_frame(entry, where)
         relative = entry.get("mesh_path")
         if relative is None:
-            relative = f"meshes/{int(entry.get('timestep_index', 0)):05d}.obj"
+            index = _integer(entry, "timestep_index", where) if "timestep_index" in entry else 0
+            relative = f"meshes/{index:05d}.obj"
+        if not isinstance(relative, str):
+            raise ValueError(f"{where}: field 'mesh_path' must be a path, got {relative!r}")
         meshes.setdefault(frame, folder / relative)
     canonical = folder / "canonical.obj"
     return VhapSubject(folder, cameras, meshes, canonical if canonical.is_file() else None)

@@ -14,6 +14,7 @@ from relightanyone.align.colour import (
     apply_faceolat_colour_matrix,
     apply_nersemble_v2_colour,
     ccm_error,
+    colour_matrix_problem,
     fit_affine_colour,
     fit_ccm,
     gamma_to_linear,
@@ -154,6 +155,43 @@ def test_nersemble_v2_calibration_errors_name_file_and_camera(tmp_path):
         read_nersemble_colour_calibration(path)
     with pytest.raises(ValueError, match="NaN"):
         read_nersemble_colour_calibration({"1": [[np.nan, 0, 0], [0, 1, 0], [0, 0, 1]]})
+
+
+SINGULAR = {
+    "all zero": np.zeros((3, 3)),
+    "rank 2": np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.5, 0.5, 0.0]]),
+    "rank 1": np.outer([1.0, 0.9, 0.8], [0.3, 0.3, 0.4]),
+}
+
+
+def test_only_an_invertible_colour_matrix_passes():
+    assert colour_matrix_problem(CAST) is None and colour_matrix_problem(1e-3 * CAST) is None
+    for name, matrix in SINGULAR.items():
+        assert "singular" in colour_matrix_problem(matrix), name
+    assert "NaN" in colour_matrix_problem(np.full((3, 3), np.nan))
+
+
+@pytest.mark.parametrize("name", sorted(SINGULAR))
+def test_every_colour_file_reader_refuses_a_singular_matrix_naming_the_file(tmp_path, name):
+    matrix = SINGULAR[name]
+    v2 = tmp_path / "color_calibration.json"
+    v2.write_text(json.dumps({"222200037": CAST.tolist(), "222200038": matrix.tolist()}))
+    with pytest.raises(ValueError, match=r"color_calibration\.json: CCM of camera 222200038: .*singular"):
+        read_nersemble_colour_calibration(v2)
+    v1 = tmp_path / "222200037.npy"
+    np.save(v1, np.hstack([matrix.T, np.zeros((3, 1))]))
+    with pytest.raises(ValueError, match=r"222200037\.npy: .*singular"):
+        read_nersemble_v1_affine(v1)
+    faceolat = tmp_path / "colorcalib_exr.mat"
+    np.savetxt(faceolat, np.vstack([np.hstack([matrix, np.zeros((3, 1))]), [0, 0, 0, 1]]))
+    with pytest.raises(ValueError, match=r"colorcalib_exr\.mat: .*singular"):
+        read_faceolat_colour_matrix(faceolat)
+    learned = tmp_path / COLOUR_ALIGNMENT_NAME
+    learned.write_text(
+        json.dumps({"format": "relightanyone.colour_alignment", "version": 1, "matrix": matrix.tolist()})
+    )
+    with pytest.raises(ValueError, match=r"colour_alignment\.json: field 'matrix': .*singular"):
+        read_learned_colour_matrix(tmp_path)
 
 
 # --- FaceOLAT real files ---------------------------------------------------------------------------------

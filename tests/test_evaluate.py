@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import cv2
@@ -19,6 +20,7 @@ from helpers.sphere_world import (
 )
 
 from relightanyone.evaluation.cases import relight_weights
+from relightanyone.evaluation.report import write_report
 from relightanyone.evaluation.truth import (
     WorldAnswers,
     match_lights,
@@ -27,6 +29,7 @@ from relightanyone.evaluation.truth import (
     world_to_normalized,
 )
 from relightanyone.model.metrics import masked_psnr, masked_rmse, masked_ssim
+from relightanyone.pipelines.report.html import markdown_to_html
 from relightanyone.render.camera import crop_intrinsics, resize_intrinsics
 from relightanyone.render.envmap import save_envmap
 
@@ -313,3 +316,36 @@ def test_warp_matches_the_ingest_filter_at_a_fractional_scale():
     ingested, K_row = undistort_crop_resize(native, K_native, dist, box, 64)
     warped = warp_native_to_row(native, K_native, dist, K_row, 64, 64)
     np.testing.assert_allclose(warped, ingested, atol=1e-5)
+
+
+def test_report_md_escapes_names_from_the_data(tmp_path):
+    key = "d1/<img src=x onerror=alert(1)>|[a](javascript:alert(1))"
+    metrics = {"two_stage": {"psnr": 30.0, "images": 4}, "single_stage": {"psnr": 28.0, "images": 4}}
+    results = {
+        "inputs": {
+            "world": "w`orld",
+            "datasets": {"d1": "<script>x</script>"},
+            "stage1": "s1",
+            "stage2": "s2",
+        },
+        "table1": {
+            "mean": metrics,
+            "subjects": {
+                key: {
+                    "source": "**bold**",
+                    "cameras": ["c|1", "c<2>"],
+                    "metrics": metrics,
+                    "seen_in_training": ["<r>"],
+                }
+            },
+        },
+    }
+    report = write_report(tmp_path, results, {}, {})
+    html = markdown_to_html(report.read_text())
+    assert not re.search(r"<(img|script|a|r)\b", html), html
+    assert "&lt;img src=x onerror=alert(1)&gt;|[a](javascript:alert(1))" in html
+    assert "<code>w`orld</code>" in html and "<code>&lt;script&gt;x&lt;/script&gt;</code>" in html
+    assert "**bold**" in html and "c|1, c&lt;2&gt;" in html
+    # Every table row still has one cell per column.
+    for row in re.findall(r"<tr>(.*?)</tr>", html, flags=re.S):
+        assert row.count("<td>") in (0, 3), row

@@ -115,6 +115,36 @@ def test_bad_cameras_undecodable_images_and_duplicate_keys_name_file_and_row(dam
     )
 
 
+def test_quarantine_is_hashed_and_its_entries_counted(pristine, damaged):
+    manifest = json.loads((pristine / "manifest.json").read_text())
+    entry = manifest["quarantine"]
+    assert entry["file"] == "quarantine.jsonl" and entry["rows"] == manifest["quarantined"] == 3
+    assert entry["sha256"] == sha256_file(pristine / "quarantine.jsonl")
+    path = damaged / "quarantine.jsonl"
+    lines = path.read_text().splitlines(keepends=True)
+    path.write_text("".join(lines[:-1]))  # an entry dropped
+    messages = _messages(damaged)
+    assert any("quarantine.jsonl: truncated" in m for m in messages), messages
+    assert any("quarantine.jsonl: 2 entries, manifest.json says 3" in m for m in messages), messages
+    text = "".join(lines)
+    at = text.index('"reason": "') + len('"reason": "')
+    path.write_text(text[:at] + ("X" if text[at] != "X" else "Y") + text[at + 1 :])  # same size, other bytes
+    assert any("quarantine.jsonl: sha256 differs" in m for m in _messages(damaged))
+    path.unlink()
+    messages = _messages(damaged)
+    assert any("quarantine.jsonl: listed in manifest.json but missing" in m for m in messages), messages
+
+
+def test_an_older_manifest_without_the_quarantine_entry_is_still_counted(damaged):
+    manifest_path = damaged / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    del manifest["quarantine"]
+    manifest_path.write_text(json.dumps(manifest))
+    assert validate_path(damaged) == []
+    (damaged / "quarantine.jsonl").write_text("")
+    assert any("quarantine.jsonl: 0 entries, manifest.json says 3" in m for m in _messages(damaged))
+
+
 def test_inspect_prints_summary_and_writes_contact_sheet(pristine, tmp_path):
     out = tmp_path / "sheet.png"
     result = CliRunner().invoke(inspect_command, [str(pristine.parent), "--out", str(out), "--samples", "4"])

@@ -26,6 +26,7 @@ from relightanyone.format.reader import NormalizedDataset
 from relightanyone.ingest import custom
 from relightanyone.ingest.decode import DecodeError, TaskDecoder, set_decoder_threads
 from relightanyone.ingest.records import AdapterOptions, ImageRef, LayoutError
+from relightanyone.ingest.tracking import read_vhap_subject
 
 
 @pytest.fixture
@@ -73,6 +74,18 @@ def test_corrupt_image_missing_camera_and_bad_mesh_are_quarantined(capture, tmp_
     assert summary.reasons == {"decode": 1, "plan": 1, "align": 4}
 
 
+def test_quarantine_reasons_are_the_same_bytes_on_every_run(capture, tmp_path):
+    image = capture / "images" / "s2" / "000001" / "c3.png"
+    image.unlink()
+    image.with_suffix(".avif").write_bytes(b"\x00\x00\x00\x1cftypavif" + bytes(64))  # corrupt AVIF
+    first = ingest(capture, tmp_path / "first")
+    second = ingest(capture, tmp_path / "second")
+    (entry,) = NormalizedDataset(first.path).quarantine()
+    assert "c3.avif" in entry.reason and "not a readable AVIF image" in entry.reason
+    assert " at 0x" not in entry.reason, entry.reason
+    assert (first.path / "quarantine.jsonl").read_bytes() == (second.path / "quarantine.jsonl").read_bytes()
+
+
 def test_alpha_maps_multiply_the_mesh_mask(capture, tmp_path):
     folder = capture / "alpha" / "s1" / "000000"
     folder.mkdir(parents=True)
@@ -91,6 +104,14 @@ def test_alpha_maps_multiply_the_mesh_mask(capture, tmp_path):
         (lambda d: d["cameras"]["c2"]["w2c"][0].__setitem__(0, float("nan")), "camera 'c2' key 'w2c'"),
         (lambda d: d["cameras"]["c3"].__setitem__("w2c", np.zeros((4, 4)).tolist()), "camera 'c3' key 'w2c'"),
         (lambda d: d.__setitem__("units", "inch"), "'units' must be one of"),
+        (
+            lambda d: d.__setitem__("colour_matrices", {"c1": np.zeros((3, 3)).tolist()}),
+            "colour_matrices['c1']: the colour matrix is singular",
+        ),
+        (
+            lambda d: d.__setitem__("colour_matrices", {"c2": [[1, 0, 0], [0, 1, 0], [1, 1, 0]]}),
+            "colour_matrices['c2']: the colour matrix is singular",
+        ),
     ],
 )
 def test_bad_calibration_names_file_camera_and_key(capture, edit, message):
@@ -101,6 +122,33 @@ def test_bad_calibration_names_file_camera_and_key(capture, edit, message):
     with pytest.raises(LayoutError) as error:
         custom.plan(capture, AdapterOptions())
     assert message in str(error.value) and "cameras.json" in str(error.value)
+
+
+def _transforms(**changes) -> str:
+    """A one-camera VHAP ``transforms.json`` text with ``changes`` applied to its frame."""
+    frame = {"camera_id": "c0", "transform_matrix": np.eye(4).tolist(), "fl_x": 100.0, "cx": 50.0}
+    frame.update({"cy": 50.0, "w": 100, "h": 100, "timestep_index": 0, **changes})
+    return json.dumps({"frames": [frame]}, indent=1)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (_transforms()[:200], "not valid JSON"),  # truncated
+        (_transforms(fl_x=float("nan")), "field 'frames[0].fl_x': contains NaN"),
+        (_transforms(transform_matrix=[[float("nan")] * 4] * 4), "frames[0].transform_matrix"),
+        (_transforms(timestep_index_original=float("nan")), "field 'timestep_index_original'"),
+        (_transforms(timestep_index="first"), "field 'timestep_index' is not a frame number"),
+        (_transforms(mesh_path=7), "field 'mesh_path' must be a path"),
+        ("[]", "expected an object"),
+    ],
+)
+def test_tracking_errors_name_the_file(tmp_path, text, message):
+    (tmp_path / "transforms.json").write_text(text)
+    with pytest.raises(ValueError) as error:
+        read_vhap_subject(tmp_path)
+    assert str(error.value).startswith(str(tmp_path / "transforms.json")), error.value
+    assert message in str(error.value) and "<dict>" not in str(error.value), error.value
 
 
 def test_missing_layout_pieces_are_named(tmp_path):

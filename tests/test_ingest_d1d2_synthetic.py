@@ -6,13 +6,17 @@ in seconds; the layouts, conventions and faults it writes are the tiny preset's.
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
+from click.testing import CliRunner
 from helpers.small_worlds import make_world, reduced_preset
 from helpers.synth_judge import project, subject_vertices, truth_of
 
 from relightanyone.align.geometry import transform_points
 from relightanyone.ingest import ava256, faceolat
+from relightanyone.ingest.cli import COMMANDS
 from relightanyone.ingest.records import AdapterOptions, DatasetPlan
 from relightanyone.synth.presets import DatasetSize
 
@@ -95,6 +99,32 @@ def test_d1_lights_map_to_truth(world, d1_plan):
     olat_duration = truth.extra["olat_duration"]
     np.testing.assert_allclose(d1_plan.light_intensities, olat_duration / 5555.0)
     assert d1_plan.kind == "olat" and d1_plan.light_intensities.shape == (len(expected), 3)
+
+
+@pytest.mark.parametrize("broken", ["calibration", "tracking"])
+def test_d1_every_subject_refused_stops_with_the_reasons_and_writes_nothing(world, tmp_path, broken):
+    src = shutil.copytree(world / "faceolat", tmp_path / "faceolat")
+    tracking = shutil.copytree(world / "tracking", tmp_path / "tracking") / "d1"  # template/ beside d1/
+    if broken == "calibration":  # every subject is refused while planning
+        for xml in sorted((src / "calibration" / "cameras").glob("*.xml")):
+            xml.write_text("<document>")
+        cause = "not valid XML"
+    else:  # every frame fails to relate to the tracking
+        for transforms in sorted(tracking.glob("*/transforms.json")):
+            transforms.write_text(transforms.read_text().replace("transform_matrix", "no_matrix"))
+        cause = "transform_matrix"
+    out = tmp_path / "out"
+    result = CliRunner().invoke(
+        COMMANDS["ingest"],
+        ["faceolat", str(src), "--tracking", str(tracking), "--out", str(out), "--preset", "tiny"],
+    )
+    assert result.exit_code == 1 and isinstance(result.exception, SystemExit), result.output
+    lines = result.output.strip().splitlines()
+    assert lines[-1].startswith(f"Error: {src}: no frame could be aligned") and cause in lines[-1], lines[-1]
+    # Each subject's reason is listed before the error.
+    for subject in ("001", "002"):
+        assert any(subject in line and cause in line for line in lines[:-1]), result.output
+    assert not out.exists()
 
 
 def test_d2_cameras_project_like_truth(world, d2_plan_all):

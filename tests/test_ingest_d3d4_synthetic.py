@@ -262,6 +262,22 @@ def test_d4_bad_calibration_refuses_that_participant(world, tmp_path):
     assert "color_calibration.json" in no_colour.reason and "not found" in no_colour.reason
 
 
+def test_d4_singular_colour_matrix_refuses_that_participant(world, tmp_path):
+    src = shutil.copytree(world / "nersemble", tmp_path / "nersemble")
+    first, second = sorted(p.name for p in src.iterdir() if p.is_dir())
+    colour_path = src / first / "calibration/color_calibration.json"
+    ccms = json.loads(colour_path.read_text())
+    camera = sorted(ccms)[0]
+    ccms[camera] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.5, 0.5, 0.0]]  # rank 2: blue is lost
+    colour_path.write_text(json.dumps(ccms))
+    plan = nersemble.plan(src, AdapterOptions())
+    by_subject = {s.subject: s for s in plan.subjects}
+    assert not by_subject[first].views and by_subject[second].views
+    (refusal,) = by_subject[first].refusals
+    assert "color_calibration.json" in refusal.reason and f"camera {camera}" in refusal.reason
+    assert "singular" in refusal.reason
+
+
 def test_d4_not_a_nersemble_folder(tmp_path):
     (tmp_path / "017" / "sequences").mkdir(parents=True)
     with pytest.raises(LayoutError, match="neither v2"):

@@ -270,3 +270,55 @@ def test_markdown_links_are_rewritten_or_reported():
         'href="https://x.org"' in rewritten and "external image http://x/y.png is not embedded" in rewritten
     )
     assert missing == ["http://x/y.png", "doc.txt"]
+
+
+INJECTED_MD = """# Evaluation
+
+<script>document.title = "injected"</script>
+
+<div onclick="steal()">a block of raw HTML</div>
+
+| subject | PSNR |
+|---|---|
+| d1/<img src=x onerror=alert(1)> | 30.1 |
+
+[click](javascript:alert(1)) [data](data:text/html,<b>x</b>) [web](https://x.org) [secret](../secret.txt)
+![outside](../outside.png) ![grid](grids/a%20(b).png)
+"""
+
+
+def test_raw_html_and_unsafe_links_in_report_md_never_reach_the_page(tmp_path):
+    evaluation = tmp_path / "evaluation"
+    picture(evaluation / "grids" / "a (b).png", (20, 120, 20))
+    picture(tmp_path / "outside.png", (1, 2, 3))
+    (tmp_path / "secret.txt").write_text("private")
+    (evaluation / "report.md").write_text(INJECTED_MD)
+    with pytest.warns(ReportWarning):  # evaluation.json is absent, and the links that leave the folder
+        result = build_report(ReportInputs(evaluation=evaluation), tmp_path / "out", progress=False)
+    page = (tmp_path / "out" / "index.html").read_text()
+    section = page[
+        page.index('<section id="evaluation">') : page.index("</section>", page.index('id="evaluation"'))
+    ]
+    assert page.count("<script>") == 1  # the page's own image check
+    assert not re.search(r"<(script|div|img)\b[^>]*\b(onclick|onerror)|<div\b|<img src=\"?x", section), (
+        section
+    )
+    assert "&lt;script&gt;" in section and "&lt;img src=x onerror=alert(1)&gt;" in section  # shown as text
+    assert "javascript:" not in re.sub(r'data-refused="[^"]*"', "", section)
+    assert 'href="data:' not in section and 'href="https://x.org"' in section
+    copied = [p.name for p in (tmp_path / "out" / "assets").rglob("*") if p.is_file()]
+    assert copied == ["a-b.png"], copied  # the grid in the folder, nothing from outside it
+    assert "not produced: ../outside.png" in section and result.images == 1
+
+
+def test_markdown_text_from_evaluation_names_stays_text():
+    from relightanyone.evaluation.report import markdown_code, markdown_text
+
+    name = "d1/<b>s</b> [x](javascript:alert(1)) | *y* `z` & \\"
+    html = markdown_to_html(
+        f"| subject | x |\n|---|---|\n| {markdown_text(name)} | 1 |\n\n- {markdown_code('a`b')}"
+    )
+    cells = re.findall(r"<td>(.*?)</td>", html)
+    assert len(cells) == 2 and cells[1] == "1", html  # the pipe did not split the cell
+    assert cells[0] == "d1/&lt;b&gt;s&lt;/b&gt; [x](javascript:alert(1)) | *y* `z` &amp; \\", cells[0]
+    assert "<code>a`b</code>" in html

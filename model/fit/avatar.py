@@ -17,8 +17,8 @@ any of: :class:`~relightanyone.render.lights.PointLights` (an OLAT light, the ri
 :class:`~relightanyone.render.lights.DirectionalLights`, an environment map (``(3, H, W)`` lat-long tensor,
 a :class:`~relightanyone.render.envmap.PrefilteredEnvmap`, or an ``.exr`` / ``.hdr`` path).
 
-The file is one ``torch.save`` archive of tensors, plain numbers and a JSON metadata string (so it loads
-with ``weights_only=True``), written atomically.
+The file is one ``torch.save`` archive of tensors, plain numbers and a JSON metadata string, written
+atomically, and read with ``weights_only=True`` (a file asking for any other Python object is refused).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from relightanyone.model.networks.gaussians import TexelBinding
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
 from relightanyone.model.networks.reflectance import RelightParams, camera_centres, relight
 from relightanyone.model.networks.stage2 import Stage2Model, texel_mesh_normals
-from relightanyone.model.train.checkpoint import save_checkpoint
+from relightanyone.model.train.checkpoint import read_plain_torch_file, save_checkpoint
 from relightanyone.render.envmap import PrefilteredEnvmap, envmap_to_sh, load_envmap, prefilter_envmap
 from relightanyone.render.lights import DirectionalLights, PointLights
 from relightanyone.render.rasterize import rasterize
@@ -395,10 +395,7 @@ class FittedAvatar:
             raise FileNotFoundError(
                 f"{path}: no avatar file; fit one first (relightanyone.model.fit.fitter.fit_subject)"
             )
-        try:
-            payload = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as error:  # torch raises several unrelated types for a corrupt or foreign file
-            raise InputError(f"{path}: not a readable avatar file ({error})") from error
+        payload = read_plain_torch_file(path, "fitted avatar file", "fit the subject again")
         if not isinstance(payload, dict) or payload.get("format") != AVATAR_FORMAT:
             raise InputError(
                 f"{path}: field 'format' is not {AVATAR_FORMAT!r}; this is not a fitted avatar file"

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from relightanyone.align.colour import colour_matrix_problem
 from relightanyone.errors import InputError
 from relightanyone.format.colour_alignment import write_learned_colour_matrix
 from relightanyone.format.dataset_view import link_dataset_view
@@ -28,12 +29,10 @@ ALIGNMENT_REPORT = "colour_alignment.json"  # align-colour's report, beside the 
 
 def correction_from_render_matrix(render_to_dataset: np.ndarray) -> np.ndarray:
     """C (3, 3) mapping shared colour to the dataset's -> M = C⁻¹ mapping the dataset's colour to shared."""
-    matrix = np.asarray(render_to_dataset, dtype=np.float64)
-    if matrix.shape != (3, 3) or not np.all(np.isfinite(matrix)):
-        raise InputError(f"learned colour matrix must be a finite 3×3, got {matrix.tolist()}")
-    if abs(np.linalg.det(matrix)) < 1e-8:
-        raise InputError(f"learned colour matrix is singular ({matrix.tolist()}); train the warm-up longer")
-    return np.linalg.inv(matrix)
+    problem = colour_matrix_problem(render_to_dataset)
+    if problem is not None:
+        raise InputError(f"learned colour matrix: {problem}; train the warm-up longer")
+    return np.linalg.inv(np.asarray(render_to_dataset, dtype=np.float64))
 
 
 def colour_cast_error(render_to_dataset: np.ndarray, true_casts: list[np.ndarray]) -> dict[str, float]:

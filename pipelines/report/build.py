@@ -27,6 +27,7 @@ import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from urllib.parse import unquote
 
 from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
 from relightanyone.format.schema import SchemaError
@@ -256,8 +257,9 @@ def _evaluation_section(builder: _Builder, inputs: ReportInputs) -> str:
     body, linked = [], set()
 
     def resolve(link: str) -> str | None:
-        target = (folder / link.split("#", 1)[0]).resolve()
-        if not target.is_file():
+        target = (folder / unquote(link.split("#", 1)[0])).resolve()
+        # Only files of the evaluation folder: a link in report.md must not copy other files into the page.
+        if not target.is_file() or not target.is_relative_to(folder.resolve()):
             return None
         linked.add(target)
         return builder.assets.add_file("evaluation", os.path.relpath(target, folder.resolve()), target)

@@ -141,12 +141,18 @@ def page(title: str, subtitle: str, sections: Sequence[Section], warnings: Seque
 def markdown_to_html(text: str) -> str:
     """Markdown (headings, paragraphs, pipe tables, lists, images, code) -> HTML, via Python-Markdown.
 
-    Headings are shifted down two levels (``#`` becomes ``<h3>``) so an embedded document nests under
-    its report section.
+    The Markdown is data (an evaluation writes names from datasets into it), so raw HTML in it is shown
+    as text, never passed through: a ``<script>`` or an ``onerror`` attribute cannot reach the page. Links
+    are checked afterwards by :func:`rewrite_links`. Headings are shifted down two levels (``#`` becomes
+    ``<h3>``) so an embedded document nests under its report section.
     """
     import markdown
 
-    converted = markdown.markdown(text, extensions=["tables", "fenced_code", "sane_lists"])
+    converter = markdown.Markdown(extensions=["tables", "fenced_code", "sane_lists"])
+    # Without these two, Python-Markdown copies HTML blocks and inline tags verbatim.
+    converter.preprocessors.deregister("html_block")
+    converter.inlinePatterns.deregister("html")
+    converted = converter.convert(text)
     return re.sub(
         r"<(/?)h([1-6])\b",
         lambda m: f"<{m.group(1)}h{min(6, int(m.group(2)) + 2)}",
@@ -157,6 +163,8 @@ def markdown_to_html(text: str) -> str:
 _IMG_TAG = re.compile(r"<img\b[^>]*>", re.IGNORECASE)
 _ATTRIBUTE = re.compile(r'\b(src|href)="([^"]*)"', re.IGNORECASE)
 _EXTERNAL = re.compile(r"^[a-z][a-z0-9+.-]*:|^//|^#", re.IGNORECASE)
+# External links that stay links; any other scheme (javascript:, data:, vbscript:, ...) loses its href.
+_SAFE_LINK = re.compile(r"^(https?:|mailto:|#)", re.IGNORECASE)
 
 
 def rewrite_links(
@@ -167,7 +175,8 @@ def rewrite_links(
     ``resolve(link)`` returns the new relative URL, or ``None`` when the target does not exist; then an
     image becomes a ``not produced`` note and a link loses its ``href``, and ``on_missing(link)`` is
     called. External images (``http:`` etc.) are replaced by a note, since the page loads nothing from
-    the network; external links stay as links.
+    the network; ``http(s):``, ``mailto:`` and ``#`` links stay as links, and a link of any other scheme
+    (``javascript:`` ...) loses its ``href``.
     """
 
     def image(match: re.Match) -> str:
@@ -187,8 +196,10 @@ def rewrite_links(
 
     def attribute(match: re.Match) -> str:
         name, link = match.group(1), html.unescape(match.group(2))
-        if name.lower() != "href" or _EXTERNAL.match(link):
+        if name.lower() != "href" or _SAFE_LINK.match(link):
             return match.group(0)
+        if _EXTERNAL.match(link):
+            return f'data-refused="{esc(link)}"'
         target = resolve(link)
         if target is None:
             on_missing(link)

@@ -517,6 +517,7 @@ class Manifest:
     lights: FileEntry | None
     quarantined: int
     format_version: int = FORMAT_VERSION
+    quarantine: FileEntry | None = None  # quarantine.jsonl (rows = entries); None in a manifest without it
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -533,6 +534,7 @@ class Manifest:
             "meshes": asdict(self.meshes) if self.meshes else None,
             "lights": asdict(self.lights) if self.lights else None,
             "quarantined": self.quarantined,
+            "quarantine": asdict(self.quarantine) if self.quarantine else None,
         }
 
     def dumps(self) -> str:
@@ -559,7 +561,10 @@ class Manifest:
                 provenance=Provenance.from_json(values["provenance"]),
                 config_fingerprint=values["config_fingerprint"],
             )
-            optional = {k: FileEntry(**values[k]) if values.get(k) else None for k in ("meshes", "lights")}
+            optional = {
+                k: FileEntry(**values[k]) if values.get(k) else None
+                for k in ("meshes", "lights", "quarantine")
+            }
             return cls(
                 info=info,
                 counts={k: int(v) for k, v in values["counts"].items()},

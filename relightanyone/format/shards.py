@@ -26,7 +26,8 @@ Files under ``<dataset>/``:
     the current one passes ``max_shard_bytes``. Same rows -> same bytes, whatever order or process the
     tasks ran in.
 ``index.arrow``, ``meshes.arrow``, ``lights.arrow``, ``quarantine.jsonl``
-    the key index (key, metadata, shard, byte offset of the row's record batch), tables and refusals.
+    the key index (key, metadata, shard, byte offset of the row's record batch), tables and refusals
+    (one line per refused item; the manifest lists it with its hash, ``rows`` = entries).
 ``manifest.json``
     written last, atomically, with the sha256 and size of every file above. A dataset without it is
     incomplete and readers refuse it. ``commit`` removes ``_parts`` only after the manifest is durable.
@@ -39,6 +40,7 @@ are never trusted: they are rewritten or deleted.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -92,6 +94,14 @@ _STAGED_LIGHTS = "_lights.arrow"
 _STAGED_QUARANTINE = "_quarantine.jsonl"
 _TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 _SHARD_NAME = re.compile(r"^images-(\d{5})\.arrow$")
+# A Python object's default repr carries its memory address, which differs from run to run.
+_OBJECT_ADDRESS = re.compile(r"\s+at 0x[0-9A-Fa-f]+(?=>)")
+
+
+def deterministic_entry(entry: QuarantineEntry) -> QuarantineEntry:
+    """``entry`` with the memory addresses of object reprs dropped from its reason (a decoder's error may
+    name ``<_io.BytesIO object at 0x7f...>``), so the same input gives the same ``quarantine.jsonl``."""
+    return dataclasses.replace(entry, reason=_OBJECT_ADDRESS.sub("", entry.reason))
 
 
 class QuarantineLog:
@@ -205,7 +215,7 @@ class PartWriter:
 
     def quarantine(self, entry: QuarantineEntry) -> None:
         """Record a refused input item (first reason per item wins)."""
-        self._quarantine.setdefault(entry.item, entry)
+        self._quarantine.setdefault(entry.item, deterministic_entry(entry))
 
     def close(self) -> None:
         """Finish the task's files and publish the task folder."""
@@ -298,7 +308,7 @@ class ShardWriter:
 
     def quarantine(self, entry: QuarantineEntry) -> bool:
         """Record a refusal that belongs to no task (append-safe; deduplicated by item)."""
-        return QuarantineLog(self.parts_dir / _STAGED_QUARANTINE).append(entry)
+        return QuarantineLog(self.parts_dir / _STAGED_QUARANTINE).append(deterministic_entry(entry))
 
     def commit(self, progress: bool = False) -> Manifest:
         """Merge all finished parts in key order into shards, write the tables and the manifest (last)."""
@@ -328,7 +338,7 @@ class ShardWriter:
         index_entry = self._write_index(index_rows)
         meshes_entry = self._write_meshes(parts)
         lights_entry = self._publish_lights()
-        quarantined = self._write_quarantine(parts)
+        quarantine_entry = self._write_quarantine(parts)
         counts = {
             "images": len(located),
             "subjects": len({r["subject"] for r in index_rows}),
@@ -338,7 +348,16 @@ class ShardWriter:
             "meshes": meshes_entry.rows if meshes_entry else 0,
             "lights": lights_entry.rows if lights_entry else 0,
         }
-        manifest = Manifest(self.info, counts, shards, index_entry, meshes_entry, lights_entry, quarantined)
+        manifest = Manifest(
+            self.info,
+            counts,
+            shards,
+            index_entry,
+            meshes_entry,
+            lights_entry,
+            quarantined=quarantine_entry.rows,
+            quarantine=quarantine_entry,
+        )
         atomic_write_bytes(self.dataset_dir / MANIFEST_NAME, manifest.dumps().encode("utf-8"))
         shutil.rmtree(self.parts_dir)
         return manifest
@@ -417,7 +436,7 @@ class ShardWriter:
         fsync_dir(self.dataset_dir)
         return self._entry(LIGHTS_NAME, read_table_file(path).num_rows)
 
-    def _write_quarantine(self, parts: Iterable[Path]) -> int:
+    def _write_quarantine(self, parts: Iterable[Path]) -> FileEntry:
         entries: dict[str, QuarantineEntry] = {}
         logs = [QuarantineLog(part / QUARANTINE_NAME) for part in parts]
         logs.append(QuarantineLog(self.parts_dir / _STAGED_QUARANTINE))
@@ -426,7 +445,7 @@ class ShardWriter:
                 entries.setdefault(entry.item, entry)
         lines = "".join(entries[item].to_json_line() + "\n" for item in sorted(entries))
         atomic_write_bytes(self.dataset_dir / QUARANTINE_NAME, lines.encode("utf-8"))
-        return len(entries)
+        return self._entry(QUARANTINE_NAME, len(entries))
 
 
 def dataset_dirs(root: Path) -> list[Path]:

@@ -5,7 +5,7 @@
 every listed file present, of the listed size (truncation) and sha256 (any changed byte); no shard listed
 twice; no unlisted shard or leftover temporary file; shard schema; keys unique across shards and equal to
 the index; sane ``K`` and ``w2c``; images and masks decodable at the declared size; meshes, lights and
-quarantine readable.
+quarantine readable, and the quarantine holding as many entries as the manifest's ``quarantined``.
 """
 
 from __future__ import annotations
@@ -146,7 +146,8 @@ def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = Fa
         if path.exists():
             problems.append(Problem(str(path), None, "leftover of an interrupted write"))
 
-    entries = [*manifest.shards, manifest.index, *(e for e in (manifest.meshes, manifest.lights) if e)]
+    side_files = (manifest.meshes, manifest.lights, manifest.quarantine)
+    entries = [*manifest.shards, manifest.index, *(e for e in side_files if e)]
     intact: set[str] = set()
     for entry in {entry.file: entry for entry in reversed(entries)}.values():  # each file once
         file_problems = _check_listed_file(dataset_dir, entry)
@@ -204,20 +205,27 @@ def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = Fa
                             f"vertices must be 3 x vertex_count ({count}) finite values",
                         )
                     )
-    problems += _check_quarantine(dataset_dir / QUARANTINE_NAME)
+    problems += _check_quarantine(dataset_dir / QUARANTINE_NAME, manifest.quarantined)
     return problems
 
 
-def _check_quarantine(path: Path) -> list[Problem]:
-    if not path.exists():
-        return []
+def _check_quarantine(path: Path, listed: int) -> list[Problem]:
+    """Every line of ``quarantine.jsonl`` an entry, and as many entries as the manifest's ``quarantined``."""
+    lines = path.read_text("utf-8").splitlines() if path.exists() else []
     problems = []
-    for number, line in enumerate(path.read_text("utf-8").splitlines(), start=1):
+    entries = 0
+    for number, line in enumerate(lines, start=1):
         if line.strip():
+            entries += 1
             try:
                 QuarantineEntry(**json.loads(line))
             except (json.JSONDecodeError, TypeError) as error:
                 problems.append(Problem(str(path), number, f"not a quarantine entry ({error})"))
+    if entries != listed:
+        state = "missing, but" if not path.exists() else f"{entries} entries,"
+        problems.append(
+            Problem(str(path), None, f"{state} manifest.json says {listed} items were quarantined")
+        )
     return problems
 
 
