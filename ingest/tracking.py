@@ -165,7 +165,7 @@ def _integer(entry: dict, field: str, where: str) -> int:
     try:
         return int(value)
     except (TypeError, ValueError, OverflowError):
-        raise ValueError(f"{where}: field '{field}' is not a frame number ({value!r})") from None
+        raise InputError(f"{where}: field '{field}' is not a frame number ({value!r})") from None
 
 
 def _native_frame(entry: dict, where: str) -> int:
@@ -212,7 +212,7 @@ def read_vhap_subject(folder: Path) -> VhapSubject:
             index = _integer(entry, "timestep_index", where) if "timestep_index" in entry else 0
             relative = f"meshes/{index:05d}.obj"
         if not isinstance(relative, str):
-            raise ValueError(f"{where}: field 'mesh_path' must be a path, got {relative!r}")
+            raise InputError(f"{where}: field 'mesh_path' must be a path, got {relative!r}")
         meshes.setdefault(frame, folder / relative)
     canonical = folder / "canonical.obj"
     return VhapSubject(folder, cameras, meshes, canonical if canonical.is_file() else None)

@@ -15,8 +15,8 @@ from helpers.small_worlds import make_world, reduced_preset
 from helpers.synth_judge import project, subject_vertices, truth_of
 
 from relightanyone.align.geometry import transform_points
+from relightanyone.cli import cli
 from relightanyone.ingest import ava256, faceolat
-from relightanyone.ingest.cli import COMMANDS
 from relightanyone.ingest.records import AdapterOptions, DatasetPlan
 from relightanyone.synth.presets import DatasetSize
 
@@ -115,8 +115,8 @@ def test_d1_every_subject_refused_stops_with_the_reasons_and_writes_nothing(worl
         cause = "transform_matrix"
     out = tmp_path / "out"
     result = CliRunner().invoke(
-        COMMANDS["ingest"],
-        ["faceolat", str(src), "--tracking", str(tracking), "--out", str(out), "--preset", "tiny"],
+        cli,
+        ["ingest", "faceolat", str(src), "--tracking", str(tracking), "--out", str(out), "--preset", "tiny"],
     )
     assert result.exit_code == 1 and isinstance(result.exception, SystemExit), result.output
     lines = result.output.strip().splitlines()

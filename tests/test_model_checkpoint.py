@@ -14,7 +14,7 @@ import torch
 from click.testing import CliRunner
 from helpers.stage1_world import tiny_stage1_preset, write_dataset
 
-from relightanyone.model.cli import COMMANDS
+from relightanyone.cli import cli
 from relightanyone.model.fit.avatar import FittedAvatar
 from relightanyone.model.train.checkpoint import (
     capture_rng_state,
@@ -61,7 +61,7 @@ def test_render_stage1_refuses_a_crafted_checkpoint_without_running_it(tmp_path)
     (run / "run.json").write_text(json.dumps({"stage": "stage1", "datasets": []}))
     _crafted(run / "checkpoint.pt", marker)
     result = CliRunner().invoke(
-        COMMANDS["render"], ["stage1", str(run), "--subject", "s00", "--out", str(tmp_path / "out")]
+        cli, ["render", "stage1", str(run), "--subject", "s00", "--out", str(tmp_path / "out")]
     )
     assert not marker.exists(), "loading the checkpoint ran code"
     assert result.exit_code == 1, result.output

@@ -164,16 +164,16 @@ def read_plain_torch_file(path: Path, what: str, remedy: str) -> Any:
         with torch.serialization.safe_globals(_LEGACY_NUMPY_STANDINS):
             return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as error:
-        raise ValueError(
+        raise InputError(
             f"{path}: refused: a {what} holds only tensors and plain values, and this file does not "
             f"({_refusal_detail(error)}); loading it could run code, so it was not loaded: {remedy}"
         ) from None
     except (RuntimeError, OSError) as error:
         # torch's messages run on with advice; the first sentence says what is wrong.
         first = re.split(r"(?<=\.)\s", str(error).strip(), maxsplit=1)[0] or type(error).__name__
-        raise ValueError(f"{path}: unreadable {what} ({first}); {remedy}") from None
+        raise InputError(f"{path}: unreadable {what} ({first}); {remedy}") from None
     except Exception:  # on bytes that are no pickle at all the unpickler fails with KeyError, EOFError, ...
-        raise ValueError(f"{path}: not a {what} (not a torch file); {remedy}") from None
+        raise InputError(f"{path}: not a {what} (not a torch file); {remedy}") from None
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:
@@ -187,7 +187,7 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     payload = read_plain_torch_file(path, "training checkpoint", "delete it and train again")
     missing = [f for f in REQUIRED_FIELDS if not isinstance(payload, dict) or f not in payload]
     if missing:
-        raise ValueError(
+        raise InputError(
             f"{path}: not a training checkpoint (field {missing[0]!r} is missing); delete it and train again"
         )
     try:
