@@ -136,3 +136,32 @@ def test_a_planted_forbidden_import_is_found(tmp_path, module, statement, expect
     problems = violations({**modules, module: planted})
     assert problems and all(problem.startswith(f"{module} imports ") for problem in problems), problems
     assert all(("another" if expected == "adapter" else f"{expected} may not import") in p for p in problems)
+
+
+def function_local_project_imports(path: Path) -> list[int]:
+    """Line numbers of project imports inside function bodies of ``path``."""
+    lines = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for inner in ast.walk(node):
+                if isinstance(inner, ast.ImportFrom) and (
+                    inner.level or (inner.module or "").startswith("relightanyone")
+                ):
+                    lines.append(inner.lineno)
+                elif isinstance(inner, ast.Import) and any(
+                    a.name.startswith("relightanyone") for a in inner.names
+                ):
+                    lines.append(inner.lineno)
+    return sorted(set(lines))
+
+
+def test_library_modules_import_the_project_at_module_top() -> None:
+    """The dependency graph is visible at the top of each module; only command modules defer imports
+    (so ``relightanyone --help`` does not load torch), as their docstrings say."""
+    command_modules = {"cli.py", "command.py", "__main__.py"}
+    hidden = {
+        module: lines
+        for module, path in module_files().items()
+        if path.name not in command_modules and (lines := function_local_project_imports(path))
+    }
+    assert not hidden, hidden
