@@ -1,14 +1,23 @@
-"""An ingest killed with SIGKILL completes on re-run, identical to an uninterrupted run; Ray gives the
-same bytes as the local executor."""
+"""An ingest killed with SIGKILL completes on re-run, identical to an uninterrupted run, and leaves no
+process behind; Ray gives the same bytes as the local executor."""
 
 from __future__ import annotations
 
+import os
 import textwrap
 from pathlib import Path
 
 import pytest
 from helpers.custom_capture import dataset_bytes, ingest, make_capture
-from helpers.kill_handshake import IMPORT_HELPERS, kill_at, start_python
+from helpers.held_workers import BUSY, HELD_INGEST_SCRIPT, RELEASE_ENV, release
+from helpers.kill_handshake import (
+    IMPORT_HELPERS,
+    descendants,
+    kill_all,
+    kill_at,
+    start_python,
+    wait_until_dead,
+)
 
 # Ingests a capture with one worker (the tasks run in this process, one subject after the other); once the
 # first subject's part is published it announces it and waits to be killed: before the next subject and
@@ -51,6 +60,26 @@ def test_sigkill_then_rerun_gives_the_uninterrupted_dataset(capture, reference, 
     assert not (out / "custom" / "manifest.json").exists()
     summary = ingest(capture, out)
     assert summary.resumed_subjects == 1
+    assert dataset_bytes(summary.path) == reference
+
+
+def test_sigkill_of_an_ingest_leaves_no_worker_and_no_part_published_after_it(capture, reference, tmp_path):
+    out, fifo = tmp_path / "out", tmp_path / "release"
+    os.mkfifo(fifo)
+    child = start_python(HELD_INGEST_SCRIPT, capture, out, env={RELEASE_ENV: str(fifo)})
+    run: dict[int, str] = {}
+    try:
+        # Both workers hold a subject's unfinished part; the forkserver and the resource tracker run too.
+        kill_at(child, BUSY, count=2, before_kill=lambda: run.update(descendants(child.pid)))
+        assert len(run) >= 3, run
+        release(fifo)  # a worker that survived would now finish its part
+        assert wait_until_dead(run) == [], "processes of the killed ingest are still alive"
+    finally:
+        kill_all(run)
+    parts = out / "custom" / "_parts"
+    assert [p.name for p in parts.iterdir() if p.is_dir() and not p.name.endswith(".tmp")] == []
+    summary = ingest(capture, out)
+    assert summary.resumed_subjects == 0
     assert dataset_bytes(summary.path) == reference
 
 
