@@ -1,5 +1,6 @@
 """An ingest killed with SIGKILL completes on re-run, identical to an uninterrupted run, and leaves no
-process behind; Ray gives the same bytes as the local executor."""
+process behind; a second ingest into a folder being written is refused and touches nothing; Ray gives the
+same bytes as the local executor."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
 from helpers.custom_capture import dataset_bytes, ingest, make_capture
 from helpers.held_workers import BUSY, HELD_INGEST_SCRIPT, RELEASE_ENV, release
 from helpers.kill_handshake import (
@@ -18,6 +20,8 @@ from helpers.kill_handshake import (
     start_python,
     wait_until_dead,
 )
+
+from relightanyone.cli import cli
 
 # Ingests a capture with one worker (the tasks run in this process, one subject after the other); once the
 # first subject's part is published it announces it and waits to be killed: before the next subject and
@@ -81,6 +85,38 @@ def test_sigkill_of_an_ingest_leaves_no_worker_and_no_part_published_after_it(ca
     summary = ingest(capture, out)
     assert summary.resumed_subjects == 0
     assert dataset_bytes(summary.path) == reference
+
+
+def _files(root: Path) -> dict[str, tuple[int, int, bytes]]:
+    """Every file under ``root``: relative path -> (size, modification time, bytes)."""
+    return {
+        str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns, p.read_bytes())
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
+
+
+def test_a_second_ingest_into_a_folder_being_written_fails_naming_the_writer(capture, reference, tmp_path):
+    out = tmp_path / "out"
+    args = ["ingest", "custom", str(capture), "--out", str(out), "--template", str(capture / "template.obj")]
+    first = start_python(KILLED_INGEST_SCRIPT, capture, out)
+    refused = {}
+
+    def second_ingest_while_the_first_writes() -> None:
+        before = _files(out)
+        refused["result"] = CliRunner().invoke(cli, [*args, "--preset", "tiny"])
+        refused["unchanged"] = _files(out) == before
+
+    kill_at(first, "PUBLISHED", before_kill=second_ingest_while_the_first_writes)
+    result = refused["result"]
+    lines = result.stderr.strip().splitlines()
+    assert result.exit_code == 1 and len(lines) == 1, result.output
+    assert f"pid {first.pid} on " in lines[0] and str(out / "custom") in lines[0], lines
+    assert refused["unchanged"]  # nothing of the first run was touched
+    # The kill released the lock: the next ingest resumes the first one's work.
+    again = CliRunner().invoke(cli, [*args, "--preset", "tiny"])
+    assert again.exit_code == 0, again.output
+    assert dataset_bytes(out / "custom") == reference
 
 
 @pytest.mark.ray

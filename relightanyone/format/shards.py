@@ -37,6 +37,10 @@ Files under ``<dataset>/``:
     written last, atomically, with the sha256 and size of every file above. A dataset without it is
     incomplete and readers refuse it. ``commit`` removes ``_parts`` only after the manifest is durable.
 
+``.lock``
+    held by the coordinator from ``begin`` to ``commit`` (:mod:`relightanyone.locking`): one writer per
+    dataset folder; removed by ``commit``, left unlocked by a killed run.
+
 Resuming: run the same code again. ``begin`` removes the manifest and every ``*.tmp``, keeps the finished
 parts when the config fingerprint is unchanged (drops them otherwise), and ``commit`` rewrites every shard
 from the parts, so the output is byte-identical to an uninterrupted run. Shards left from an earlier run
@@ -87,6 +91,7 @@ from relightanyone.format.schema import (
     SchemaError,
 )
 from relightanyone.hashing import sha256_file
+from relightanyone.locking import acquire_output_lock, release_output_lock
 
 DEFAULT_MAX_SHARD_BYTES = 256 << 20
 PARTS_DIR = "_parts"
@@ -285,9 +290,10 @@ class ShardWriter:
         return self.dataset_dir / PARTS_DIR
 
     def begin(self) -> None:
-        """Start (or resume) writing: drop the manifest and temporary files; keep finished parts of the
-        same config."""
-        self.dataset_dir.mkdir(parents=True, exist_ok=True)
+        """Start (or resume) writing: lock the folder for this process until ``commit`` (another writer
+        gets :class:`~relightanyone.locking.OutputLockedError` and changes nothing), drop the manifest and
+        temporary files; keep finished parts of the same config."""
+        acquire_output_lock(self.dataset_dir)
         (self.dataset_dir / MANIFEST_NAME).unlink(missing_ok=True)
         fsync_dir(self.dataset_dir)
         stamp = self.parts_dir / _CONFIG_STAMP
@@ -394,6 +400,7 @@ class ShardWriter:
         )
         atomic_write_bytes(self.dataset_dir / MANIFEST_NAME, manifest.dumps().encode("utf-8"))
         shutil.rmtree(self.parts_dir)
+        release_output_lock(self.dataset_dir)
         return manifest
 
     def _entry(self, name: str, rows: int) -> FileEntry:
