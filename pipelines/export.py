@@ -31,6 +31,7 @@ from relightanyone.format.arrow_io import atomic_write_bytes
 from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
 from relightanyone.format.schema import MANIFEST_NAME, SchemaError
 from relightanyone.format.shards import dataset_dirs
+from relightanyone.locking import output_lock
 
 EXPORT_CONVENTIONS = {
     "colour": "scene-linear RGB after the dataset's colour calibration",
@@ -128,10 +129,9 @@ def export_dataset(
     """Write the dataset at ``dataset_dir`` into ``out`` (layout in the module docstring).
 
     Returns a summary ``{"dataset", "images", "subjects", "lights"}``. Raises ExportError for a folder that
-    is not one complete dataset or for unknown ``subjects``.
+    is not one complete dataset or for unknown ``subjects``. ``out`` is locked while it is written
+    (:mod:`relightanyone.locking`): a second export into it stops with an error naming this one.
     """
-    from tqdm import tqdm
-
     if precision not in ("float", "half"):
         raise ExportError(f"precision {precision!r}: expected 'float' or 'half'")
     dataset = _open_dataset(Path(dataset_dir))
@@ -143,8 +143,16 @@ def export_dataset(
                 f"(subjects: {', '.join(dataset.subjects)})"
             )
     keys = dataset.select(subjects=list(subjects) if subjects else None)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    with output_lock(out):
+        return _write_export(dataset, keys, Path(out), precision, progress)
+
+
+def _write_export(
+    dataset: NormalizedDataset, keys: list[str], out: Path, precision: str, progress: bool
+) -> dict:
+    """The files of an export of ``keys`` into ``out`` (which the caller has locked)."""
+    from tqdm import tqdm
+
     (out / "dataset.json").unlink(missing_ok=True)  # incomplete until rewritten at the end
     cameras = []
     for key in tqdm(keys, desc=f"export {dataset.name}", unit="image", disable=not progress):

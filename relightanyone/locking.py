@@ -1,7 +1,7 @@
 """One writer per output folder: an exclusive lock held for the whole run.
 
 Every command that owns an output folder (a dataset written by the ``ShardWriter``, an export, a training
-run, a pipeline stage's output) takes ``<folder>/.lock`` with ``flock(LOCK_EX | LOCK_NB)`` before it
+run) takes ``<folder>/.lock`` with ``flock(LOCK_EX | LOCK_NB)`` before it
 changes anything there, and keeps it until it is done. A second writer is refused at once with
 :class:`OutputLockedError`, one line naming the folder and the process that holds it (pid, host and
 command, which the holder writes into the lock file), and touches nothing. The kernel drops the lock
@@ -10,7 +10,9 @@ unlocked, and the next run takes it over. A run that ends normally removes the f
 
 A process may take the same folder again (a re-run in the same process, or a command around a writer
 that also locks): the lock is kept per process and folder, and only the first taker releases it.
-The lock is advisory: it keeps out writers of this toolkit, not other programs.
+The lock is advisory: it keeps out writers of this toolkit, not other programs. The pipeline runner locks
+each stage's output while the stage runs with a file beside it (``.<output name>_stage.lock``), since the
+stage's own command may lock the folder itself.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from relightanyone.errors import InputError
 LOCK_NAME = ".lock"
 _HOLDER_CHARS = 300  # of the holder's line shown in a refusal
 
-# resolved folder -> descriptor of its locked ``.lock`` file, for the folders this process holds
+# resolved lock file -> its locked descriptor, for the locks this process holds
 _HELD: dict[Path, int] = {}
 _HELD_LOCK = threading.Lock()
 
@@ -73,41 +75,41 @@ def _open_locked(path: Path) -> int:
         os.close(fd)
 
 
-def acquire_output_lock(folder: Path) -> bool:
-    """Lock ``folder`` (created if missing) for this process; returns False when this process already
-    held it. Raises :class:`OutputLockedError` when another process holds it."""
+def acquire_output_lock(folder: Path, name: str = LOCK_NAME) -> bool:
+    """Lock ``folder`` (created if missing) for this process with the file ``name`` in it; returns False
+    when this process already held it. Raises :class:`OutputLockedError` when another process holds it."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    key = folder.resolve()
+    key = folder.resolve() / name
     with _HELD_LOCK:
         if key in _HELD:
             return False
-        fd = _open_locked(key / LOCK_NAME)
+        fd = _open_locked(key)
         os.ftruncate(fd, 0)
         os.pwrite(fd, (holder_line() + "\n").encode("utf-8"), 0)
         _HELD[key] = fd
         return True
 
 
-def release_output_lock(folder: Path) -> None:
-    """Remove and unlock ``folder``'s lock file if this process holds it."""
-    key = Path(folder).resolve()
+def release_output_lock(folder: Path, name: str = LOCK_NAME) -> None:
+    """Remove and unlock ``folder``'s lock file ``name`` if this process holds it."""
+    key = Path(folder).resolve() / name
     with _HELD_LOCK:
         fd = _HELD.pop(key, None)
         if fd is None:
             return
         # Removed while still locked, so a process that opened the old file sees it is gone and retries.
         with contextlib.suppress(FileNotFoundError):
-            os.unlink(key / LOCK_NAME)
+            os.unlink(key)
         os.close(fd)
 
 
 @contextlib.contextmanager
-def output_lock(folder: Path) -> Iterator[None]:
-    """Hold ``folder``'s lock for the block (see the module docstring)."""
-    taken = acquire_output_lock(folder)
+def output_lock(folder: Path, name: str = LOCK_NAME) -> Iterator[None]:
+    """Hold ``folder``'s lock (the file ``name`` in it) for the block (see the module docstring)."""
+    taken = acquire_output_lock(folder, name)
     try:
         yield
     finally:
         if taken:
-            release_output_lock(folder)
+            release_output_lock(folder, name)
