@@ -34,6 +34,7 @@ from relightanyone.format.schema import (
     DatasetInfo,
     LightRow,
     Manifest,
+    check_name,
     fingerprint_config,
 )
 from relightanyone.format.shards import ShardWriter
@@ -175,9 +176,9 @@ def plan_expansion(
     """Check the inputs (loading both runs together once) and list the tasks; renders nothing."""
 
     source_data = NormalizedDataset(source)
-    name = name or f"{source_data.name}-olat"
-    if not name or "/" in name:
-        raise InputError(f"--name {name!r} must be a non-empty folder name without '/'")
+    name = check_name(name or f"{source_data.name}-olat", "dataset", "expand --name")
+    for envmap in envmaps or []:
+        check_name(envmap_pattern(Path(envmap)), "pattern", str(envmap))
     if min(fit_iterations) < 0:
         raise InputError(f"--fit-iterations must be >= 0, got {fit_iterations}")
     envmaps = [Path(p) for p in envmaps or []]
