@@ -28,7 +28,6 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from relightanyone.align.geometry import (
     decompose_similarity,
@@ -63,6 +62,7 @@ from relightanyone.ingest.tracking import (
     shipped_tracking,
 )
 from relightanyone.parallel import Executor
+from relightanyone.progress import progress_bar
 
 # Square crop side per preset (docs/ingest.md: tiny/demo 128², small 512², paper 1024²).
 PRESET_SIZES = {"tiny": 128, "demo": 128, "small": 512, "paper": 1024}
@@ -455,7 +455,7 @@ def run_tasks(
 ) -> list:
     """``run_subject_task(writer, settings, task)`` for every task on ``executor``; the results in task
     order. The progress bar counts views of finished subjects; the longest subjects start first."""
-    bar = tqdm(
+    bar = progress_bar(
         total=sum(len(t.plan.views) for t in tasks),
         desc=f"ingest {settings.dataset}",
         unit="view",

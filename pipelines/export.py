@@ -31,6 +31,7 @@ from relightanyone.format.arrow_io import atomic_write_bytes
 from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
 from relightanyone.format.schema import INDEX_NAME, MANIFEST_NAME, SchemaError, check_name
 from relightanyone.format.shards import dataset_dirs
+from relightanyone.progress import progress_bar
 
 EXPORT_CONVENTIONS = {
     "colour": "scene-linear RGB after the dataset's colour calibration",
@@ -135,8 +136,6 @@ def export_dataset(
     Returns a summary ``{"dataset", "images", "subjects", "lights"}``. Raises ExportError for a folder that
     is not one complete dataset or for unknown ``subjects``.
     """
-    from tqdm import tqdm
-
     if precision not in ("float", "half"):
         raise ExportError(f"precision {precision!r}: expected 'float' or 'half'")
     dataset = _open_dataset(Path(dataset_dir))
@@ -160,7 +159,7 @@ def export_dataset(
     out.mkdir(parents=True, exist_ok=True)
     (out / "dataset.json").unlink(missing_ok=True)  # incomplete until rewritten at the end
     cameras = []
-    for key in tqdm(keys, desc=f"export {dataset.name}", unit="image", disable=not progress):
+    for key in progress_bar(keys, desc=f"export {dataset.name}", unit="image", disable=not progress):
         row, image, _ = dataset.decoded(key)
         image_file, mask_file = image_paths(
             row.subject, row.frame, row.camera, row.pattern, where=f"{dataset.path} row {key!r}"

@@ -22,6 +22,7 @@ import click
 from relightanyone import __version__
 from relightanyone.errors import RelightAnyoneError
 from relightanyone.os_errors import OUTPUT_META_KEY, os_error_line
+from relightanyone.progress import PROGRESS_META_KEY, progress_bar
 from relightanyone.render.errors import FileFormatError
 from relightanyone.synth.errors import WorldError
 
@@ -112,6 +113,8 @@ def cli() -> None:
     `relightanyone COMMAND --help` for its options. Real downloads (or a synthetic world) are ingested
     into normalized datasets, checked, and used to train the model.
     """
+    # Synth cannot import the project: its command takes the progress report from here.
+    click.get_current_context().meta[PROGRESS_META_KEY] = progress_bar
 
 
 for _name, _command in _gather_commands().items():

@@ -24,8 +24,6 @@ from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
 
-from tqdm import tqdm
-
 from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import (
@@ -51,6 +49,7 @@ from relightanyone.pipelines.expand.inputs import (
 )
 from relightanyone.pipelines.expand.render import envmap_pattern
 from relightanyone.pipelines.expand.task import run_expand_task
+from relightanyone.progress import progress_bar
 
 TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 # What the local pool's server imports once, so each forked worker starts with them loaded.
@@ -351,7 +350,7 @@ def run_expand_tasks(
     """
     runner = Executor(executor, workers, preload=WORKER_PRELOAD)
     total = sum(len(t.source_keys) for t in tasks) * images_per_view
-    bar = tqdm(total=total, desc=f"expand {settings.output.name}", unit="image", disable=not progress)
+    bar = progress_bar(total=total, desc=f"expand {settings.output.name}", unit="image", disable=not progress)
     try:
         if runner.in_process(len(tasks)):
             return runner.map(partial(run_expand_task, writer, settings, on_images=bar.update), tasks)

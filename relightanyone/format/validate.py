@@ -36,6 +36,7 @@ from relightanyone.format.schema import (
 )
 from relightanyone.format.shards import PARTS_DIR, dataset_dirs
 from relightanyone.hashing import sha256_file
+from relightanyone.progress import progress_bar
 
 
 @dataclass(frozen=True)
@@ -133,8 +134,6 @@ def _check_table(path: Path, schema: pa.Schema, problems: list[Problem]) -> pa.T
 
 def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = False) -> list[Problem]:
     """All problems of one dataset folder."""
-    from tqdm import tqdm
-
     dataset_dir = Path(dataset_dir)
     try:
         manifest = load_manifest(dataset_dir)
@@ -167,7 +166,7 @@ def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = Fa
 
     seen: dict[str, str] = {}
     total = sum(entry.rows for entry in manifest.shards)
-    bar = tqdm(total=total, desc=f"validate {manifest.info.name}", unit="row", disable=not progress)
+    bar = progress_bar(total=total, desc=f"validate {manifest.info.name}", unit="row", disable=not progress)
     for entry in dict.fromkeys(e.file for e in manifest.shards):
         path = dataset_dir / entry
         if entry not in intact:
