@@ -57,22 +57,30 @@ def make_read_only(folder: Path, monkeypatch) -> None:
 
 @pytest.mark.parametrize("fault", ["read-only folder", "file in place of a folder"])
 def test_an_unwritable_output_stops_ingest_before_planning(capture, tmp_path, monkeypatch, fault):
+    blocked = tmp_path / fault.replace(" ", "-")
     planned = []
-    monkeypatch.setattr(custom, "plan", lambda *args: planned.append(args) or pytest.fail("planned"))
-    if fault == "read-only folder":
-        blocked = tmp_path / "read-only"
-        blocked.mkdir()
-        make_read_only(blocked, monkeypatch)
-        advice = "make it writable"
-    else:
-        blocked = tmp_path / "a-file"
-        blocked.write_bytes(b"not a folder")
-        advice = "a file stands where a folder is needed"
-    result = ingest(capture, blocked / "datasets")
+    with monkeypatch.context() as patched:
+        patched.setattr(custom, "plan", lambda *args: planned.append(args) or pytest.fail("planned"))
+        if fault == "read-only folder":
+            blocked.mkdir()
+            make_read_only(blocked, patched)
+            advice = "make it writable"
+        else:
+            blocked.write_bytes(b"not a folder")
+            advice = "a file stands where a folder is needed"
+        result = ingest(capture, blocked / "datasets")
     line = error_line(result)
     assert result.output.strip() == line  # found before anything was planned or printed
     assert line.startswith(f"Error: {blocked}: ") and advice in line
     assert planned == [] and list(tmp_path.iterdir()) == [blocked]
+    # The fault removed, the same command completes.
+    if fault == "read-only folder":
+        blocked.chmod(0o755)
+    else:
+        blocked.unlink()
+    assert ingest(capture, blocked / "datasets").exit_code == 0
+    dataset = NormalizedDataset(blocked / "datasets" / "custom")
+    assert len(dataset) == len(set(dataset.keys)) == ROWS
 
 
 def test_the_write_probe_leaves_nothing_behind(tmp_path):
