@@ -31,6 +31,7 @@ from relightanyone.format.arrow_io import atomic_write_bytes
 from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
 from relightanyone.format.schema import INDEX_NAME, MANIFEST_NAME, SchemaError, check_name
 from relightanyone.format.shards import dataset_dirs
+from relightanyone.os_errors import naming_file
 from relightanyone.progress import progress_bar
 
 EXPORT_CONVENTIONS = {
@@ -73,7 +74,8 @@ def _write_file(path: Path, data: bytes) -> None:
     """Temporary name then rename: a reader never sees a truncated file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(path.name + ".tmp")
-    temporary.write_bytes(data)
+    with naming_file(temporary):  # a failed write (a full disk) names no file
+        temporary.write_bytes(data)
     os.replace(temporary, path)
 
 

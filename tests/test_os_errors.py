@@ -127,3 +127,14 @@ def test_run_finds_an_unwritable_stage_output_before_any_stage_starts(tmp_path):
         line == f"Error: {tmp_path / 'a-file'}: Not a directory; {os_errors.OS_ERROR_ADVICE[errno.ENOTDIR]}"
     )
     assert not marker.exists()
+
+
+def test_a_write_error_that_names_no_file_is_given_the_file(tmp_path):
+    """/dev/full fails every write with ENOSPC and, as any failed write, names no file."""
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full on this system")
+    with pytest.raises(OSError) as caught, os_errors.naming_file(tmp_path / "part.arrow"):
+        with open("/dev/full", "wb") as handle:
+            handle.write(b"x" * 100)
+    assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(tmp_path / "part.arrow")
+    assert "No space left on device" in os_errors.os_error_line(caught.value)

@@ -39,7 +39,7 @@ def fsync_dir(path: Path) -> None:
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` via ``path.tmp``, fsync, rename: readers see the old file or the new one."""
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as handle:
+    with naming_file(tmp), open(tmp, "wb") as handle:  # a failed write (a full disk) names no file
         handle.write(data)
         handle.flush()
         os.fsync(handle.fileno())
