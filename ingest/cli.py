@@ -35,6 +35,22 @@ def frame_numbers(values: tuple[str, ...]) -> tuple[int, ...] | None:
         raise ValueError(f"frames must be integers, got {', '.join(names)}") from None
 
 
+def sensor_size(value: str | None) -> tuple[int, int] | None:
+    """``--sensor-size 2668x4096`` -> (2668, 4096); nothing given -> None (the layout's own)."""
+    if value is None:
+        return None
+    parts = value.lower().split("x")
+    try:
+        width, height = (int(p) for p in parts)
+    except ValueError:
+        raise ValueError(
+            f"sensor size must be WIDTHxHEIGHT in pixels, e.g. 2668x4096, got {value!r}"
+        ) from None
+    if width <= 0 or height <= 0:
+        raise ValueError(f"sensor size must be positive, got {value!r}")
+    return width, height
+
+
 def _adapter_command(spec: AdapterSpec) -> click.Command:
     command_name, tracking_required = spec.command, spec.tracking_required
 
@@ -77,6 +93,14 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         "--all-frames", is_flag=True, help="Every listed frame instead of the neutral one (Ava-256)."
     )
     @click.option("--sequence", default=None, help="Sequence to read (NeRSemble; default: the first).")
+    @click.option(
+        "--sensor-size",
+        default=None,
+        metavar="WxH",
+        callback=parsed_by(sensor_size),
+        help="Size in pixels of the sensor the calibration's K describes, when it is not the layout's "
+        "own (Ava-256: 2668x4096; NeRSemble: the file's width/height or 2200x3208).",
+    )
     @workers_option()
     @executor_option()
     @dry_run_option("Print what was found and the estimated size, write nothing.")
@@ -94,6 +118,7 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         splits_file,
         all_frames,
         sequence,
+        sensor_size,
         workers,
         executor,
         dry_run,
@@ -110,6 +135,7 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
             test_subjects=tuple(sorted(held_out)),
             all_frames=all_frames,
             sequence=sequence,
+            sensor_size=sensor_size,
         )
         adapter.detect(src)
         if not dry_run:

@@ -32,6 +32,7 @@ from tqdm import tqdm
 
 from relightanyone.align.geometry import (
     decompose_similarity,
+    fold_head_pose,
     light_intensities_to_canonical,
     lights_to_canonical,
     similarity,
@@ -156,7 +157,21 @@ def check_tracking_dir(tracking_dir: Path, subjects: list[str]) -> None:
 
 
 def native_cameras_by_frame(plan: SubjectPlan) -> dict[int, dict[str, np.ndarray]]:
-    """frame -> camera name -> native ``w2c (4, 4)`` of a subject's views."""
+    """frame -> camera name -> native ``w2c (4, 4)`` for every frame that has a view.
+
+    The cameras are the whole calibrated rig when the adapter gives it (``plan.rig_w2c``, each frame's head
+    pose folded in), so the native->tracker fit does not depend on ``--cameras`` or on dropped images;
+    else the views' own cameras.
+    """
+    frames = sorted({int(view.frame) for view in plan.views})
+    if plan.rig_w2c:
+        return {
+            frame: {
+                name: fold_head_pose(w2c, plan.head_poses[frame]) if frame in plan.head_poses else w2c
+                for name, w2c in plan.rig_w2c.items()
+            }
+            for frame in frames
+        }
     out: dict[int, dict[str, np.ndarray]] = {}
     for view in plan.views:
         out.setdefault(int(view.frame), {})[view.camera.name] = np.asarray(view.camera.w2c, dtype=np.float64)

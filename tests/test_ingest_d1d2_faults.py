@@ -23,7 +23,7 @@ MICRO = reduced_preset(
     texture_size=8,
     answer_lights=2,
     d1=DatasetSize(train_subjects=2, test_subjects=0, cameras=2, image_size=(16, 24), lights=4),
-    d2=DatasetSize(train_subjects=2, test_subjects=0, cameras=2, image_size=(64, 96), frames=2, lights=4),
+    d2=DatasetSize(train_subjects=2, test_subjects=0, cameras=2, image_size=(63, 96), frames=2, lights=4),
 )
 
 

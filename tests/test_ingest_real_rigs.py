@@ -1,0 +1,94 @@
+"""Real rigs as they are captured: downscales from image size against sensor size, off-centre principal
+points, the native->tracker fit on the whole rig whatever ``--cameras`` keeps, dropped frames."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers.ava_capture import REAL_SENSOR, SENSOR, SUBJECT, downscaled, drop_image, write_ava_capture
+
+from relightanyone.format.reader import NormalizedDataset
+from relightanyone.ingest import ava256
+from relightanyone.ingest.calibration import downsample_factor, read_krt_json
+from relightanyone.ingest.records import AdapterOptions
+from relightanyone.ingest.runner import ingest_dataset
+
+REAL_CALIBRATION = (
+    Path(__file__).resolve().parents[2]
+    / "shared/fixtures/real/ava-256/full_rig_6933dab/camera_calibration.json"
+)
+
+
+def ingest(capture, plan, out):
+    return ingest_dataset(plan, capture.tracking, out, "tiny", progress=False, template=capture.template)
+
+
+@pytest.mark.parametrize("factor", [1, 2, 4, 8, 16])
+def test_off_centre_rig_ingests_every_view_at_every_downscale(tmp_path, factor):
+    capture = write_ava_capture(tmp_path, factor=factor)
+    plan = ava256.plan(capture.root, AdapterOptions(sensor_size=SENSOR))
+    assert not [r for s in plan.subjects for r in s.refusals]
+    views = plan.subjects[0].views
+    assert len(views) == len(capture.cameras) * 2
+    for view in views:
+        assert (view.camera.width, view.camera.height) == capture.image_size
+        np.testing.assert_allclose(view.camera.K, capture.K_image(view.camera.name), atol=1e-9)
+    summary = ingest(capture, plan, tmp_path / "out")
+    assert summary.rows == len(views) and summary.quarantined == 0
+    dataset = NormalizedDataset(summary.path)
+    for key in dataset.keys:
+        row = dataset.row(key)
+        expected = capture.w2c_head[(row.frame, row.camera)]
+        np.testing.assert_allclose(row.w2c, expected, atol=1e-6)
+
+
+def test_a_calibration_for_another_sensor_is_refused_with_the_size_to_pass(tmp_path):
+    capture = write_ava_capture(tmp_path, factor=2, cameras=4)
+    plan = ava256.plan(capture.root, AdapterOptions())  # read as the 2668x4096 sensor
+    reasons = {r.reason for s in plan.subjects for r in s.refusals}
+    assert not plan.view_count and len(reasons) == 1
+    (reason,) = reasons
+    assert "principal points" in reason and "--sensor-size" in reason and "2668x4096" in reason
+
+
+@pytest.mark.skipif(not REAL_CALIBRATION.is_file(), reason="the real Ava-256 rig calibration is not present")
+def test_real_rig_factors_come_from_the_image_size():
+    rig = read_krt_json(REAL_CALIBRATION)
+    K = rig.K.numpy()
+    centre = np.median(K[:, :2, 2], axis=0)
+    assert abs(centre[0] - 1482) < 20 and abs(centre[1] - 1710) < 20  # off-centre, as the issue describes
+    for factor in (1, 2, 4, 8, 16):
+        width, height = REAL_SENSOR[0] / factor, REAL_SENSOR[1] / factor
+        for size in {(int(np.floor(width)), int(height)), (int(np.ceil(width)), int(height))}:
+            downscale = downsample_factor(K, size, REAL_SENSOR)
+            assert downscale.factor == factor, (size, downscale)
+            stored = downscale.intrinsics(K)
+            np.testing.assert_allclose(stored[:, 1, 1], K[:, 1, 1] / factor)
+            np.testing.assert_allclose(stored[:, 1, 2], (K[:, 1, 2] + 0.5) / factor - 0.5)
+    with pytest.raises(ValueError, match="no downscale"):
+        downsample_factor(K, (300, 512), REAL_SENSOR)
+
+
+def test_selected_cameras_are_written_with_the_fit_on_the_whole_rig(tmp_path):
+    capture = write_ava_capture(tmp_path, factor=4)
+    kept = (capture.cameras[1], capture.cameras[3])
+    plan = ava256.plan(capture.root, AdapterOptions(sensor_size=SENSOR, cameras=kept))
+    summary = ingest(capture, plan, tmp_path / "out")
+    assert summary.rows == 4 and summary.quarantined == 0
+    assert {
+        NormalizedDataset(summary.path).row(k).camera for k in NormalizedDataset(summary.path).keys
+    } == set(kept)
+
+
+def test_a_dropped_frame_quarantines_only_its_own_view(tmp_path):
+    capture = write_ava_capture(tmp_path, factor=4)
+    kept = tuple(capture.cameras[:3])
+    drop_image(capture, kept[1], 14)
+    plan = ava256.plan(capture.root, AdapterOptions(sensor_size=SENSOR, cameras=kept))
+    summary = ingest(capture, plan, tmp_path / "out")
+    assert summary.rows == 5 and summary.quarantined == 1
+    keys = NormalizedDataset(summary.path).keys
+    assert not any(k.endswith(f"{SUBJECT}/000014/{kept[1]}/full") for k in keys)
+    assert downscaled(SENSOR, 4) == capture.image_size
