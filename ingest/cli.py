@@ -20,6 +20,7 @@ from relightanyone.cli_options import (
     preset_option,
     workers_option,
 )
+from relightanyone.errors import InputError
 from relightanyone.ingest.records import AdapterOptions, published_test_subjects
 from relightanyone.ingest.registry import ADAPTERS, AdapterSpec, load_adapter
 
@@ -123,7 +124,13 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         executor,
         dry_run,
     ):
-        from relightanyone.ingest.runner import found_lines, ingest_dataset, ingest_executor, prepare
+        from relightanyone.ingest.runner import (
+            found_lines,
+            ingest_dataset,
+            ingest_executor,
+            nothing_to_write,
+            prepare,
+        )
 
         adapter = load_adapter(command_name)
         held_out = set(test_subjects or ()) | set(published_test_subjects(splits_file) if splits_file else ())
@@ -144,8 +151,11 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
             ingest_executor(workers, executor).warm()
         plan = adapter.plan(src, options)
         prepared = prepare(plan, tracking, preset, template, workers=workers, executor=executor)
-        for line in found_lines(plan, prepared[0], prepared[2]):
+        for line in found_lines(plan, prepared[0], prepared[2], every_reason=dry_run):
             click.echo(line)
+        empty = nothing_to_write(plan, prepared[2])
+        if empty:
+            raise InputError(empty)
         if dry_run:
             click.echo("dry run: nothing written")
             return

@@ -19,18 +19,21 @@ Layout (``docs/ingest.md``, "Custom captures")::
      "name": "...", "licence": "..."}             optional
 
 Every problem names the file and the key or camera. An image of a camera absent from ``cameras.json`` is
-refused (quarantined), as is a frame without a mesh.
+refused (quarantined), as is a frame without a mesh and an image whose header gives another size than
+its camera's ``width``/``height`` (headers are read while planning, so a dry run reports the sizes).
 """
 
 from __future__ import annotations
 
 import json
 import re
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 from relightanyone.align.colour import colour_matrix_problem
+from relightanyone.ingest.decode import header_size
 from relightanyone.ingest.records import (
     AdapterOptions,
     ColourCalibration,
@@ -182,6 +185,7 @@ def plan(src: Path, options: AdapterOptions | None = None) -> DatasetPlan:
     cameras, document, scale = read_cameras_json(cameras_path)
     encoding = document.get("encoding", "srgb")
     subjects: list[SubjectPlan] = []
+    sizes: Counter[str] = Counter()  # image sizes read from the headers, for the report before writing
     subject_dirs = sorted(p for p in (src / "images").iterdir() if p.is_dir())
     if not subject_dirs:
         raise LayoutError(
@@ -215,6 +219,20 @@ def plan(src: Path, options: AdapterOptions | None = None) -> DatasetPlan:
                         )
                     )
                     continue
+                codec = _codec(extension, encoding)
+                size = header_size(image_path, codec)
+                expected = (cameras[camera].width, cameras[camera].height)
+                if size is not None and size != expected:
+                    refusals.append(
+                        Refusal(
+                            item,
+                            relative,
+                            f"image is {size[0]}x{size[1]} but {cameras_path.name} gives camera {camera} "
+                            f"{expected[0]}x{expected[1]}",
+                        )
+                    )
+                    continue
+                sizes[f"{size[0]}x{size[1]}" if size else "unreadable header"] += 1
                 alpha = _find_alpha(src, subject, frame_dir.name, camera)
                 views.append(
                     SourceView(
@@ -222,7 +240,7 @@ def plan(src: Path, options: AdapterOptions | None = None) -> DatasetPlan:
                         frame=frame,
                         camera=cameras[camera],
                         pattern="full",
-                        image=ImageRef(relative, _codec(extension, encoding)),
+                        image=ImageRef(relative, codec),
                         colour=_colour(document, camera, cameras_path),
                         source=relative,
                         alpha=None
@@ -250,6 +268,11 @@ def plan(src: Path, options: AdapterOptions | None = None) -> DatasetPlan:
         source_dataset=document.get("source", SOURCE_DATASET),
         licence=document.get("licence", LICENCE),
         subjects=subjects,
-        found={"cameras": sorted(cameras), "units": document["units"], "encoding": encoding},
+        found={
+            "cameras": sorted({v.camera.name for s in subjects for v in s.views}),
+            "units": document["units"],
+            "encoding": encoding,
+            "image_size": [f"{size} ({count} images)" for size, count in sorted(sizes.items())],
+        },
         mesh_units_to_m=scale,
     )

@@ -33,6 +33,7 @@ import numpy as np
 from relightanyone.align.colour import read_faceolat_colour_matrix
 from relightanyone.ingest.adapter_common import adapter_plan
 from relightanyone.ingest.calibration import CalibrationError
+from relightanyone.ingest.decode import header_size
 from relightanyone.ingest.metashape import read_metashape_xml
 from relightanyone.ingest.records import (
     AdapterOptions,
@@ -258,22 +259,6 @@ def _scan_frames(src: Path, ext: str) -> dict[str, dict[str, dict[str, dict[int,
     return found
 
 
-def _image_size(path: Path, codec: str) -> tuple[int, int] | None:
-    """(width, height) of an EXR or AVIF from its header (no pixel decoding); None when unreadable."""
-    try:
-        if codec == "exr-linear":
-            import OpenEXR
-
-            window = OpenEXR.InputFile(str(path)).header()["dataWindow"]
-            return window.max.x - window.min.x + 1, window.max.y - window.min.y + 1
-        from PIL import Image
-
-        with Image.open(path) as image:
-            return image.size
-    except Exception:  # OpenEXR and Pillow raise assorted types on damaged files; the runner reports them
-        return None
-
-
 def _camera_image_sizes(
     captures: dict[str, dict[str, dict[int, Path]]], cameras: tuple[str, ...], codec: str
 ) -> dict[str, tuple[int, int]]:
@@ -284,7 +269,7 @@ def _camera_image_sizes(
             for frame in sorted(frames):
                 if camera in sizes or camera not in cameras:
                     break
-                size = _image_size(frames[frame], codec)
+                size = header_size(frames[frame], codec)
                 if size is not None:
                     sizes[camera] = size
     return sizes
@@ -374,6 +359,9 @@ def _plan_subject(
     cameras, problems = _native_cameras(rig, _camera_image_sizes(captures, rig.cameras.names, codec))
     for camera, reason in sorted(problems.items()):
         plan.refusals.append(Refusal(f"{subject}/{camera}", xml, reason))
+    plan.rig_w2c = {
+        name: rig.cameras.w2c[i].numpy().astype(np.float64) for i, name in enumerate(rig.cameras.names)
+    }
 
     schedules = found.setdefault("schedules", {})
     for rank, capture in enumerate(sorted(captures)):

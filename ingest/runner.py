@@ -43,6 +43,7 @@ from relightanyone.format.codecs import DEFAULT_IMAGE_ENCODING
 from relightanyone.format.schema import (
     INGEST_REPORT_NAME,
     NECK_MASK_NAME,
+    QUARANTINE_NAME,
     TEMPLATE_NAME,
     DatasetInfo,
     LightRow,
@@ -72,6 +73,10 @@ BYTES_PER_PIXEL = {"raw-f16": 2.02, "png16": 1.98, "exr-half": 1.38}
 TRACKER_NAME = "VHAP export"
 SHIPPED_TRACKER_NAME = "meshes shipped with the capture"
 SHOWN_REASONS = 5  # refusals and failed frames listed before writing; every one goes to quarantine.jsonl
+SHOWN_VALUES = 25  # names listed per line of what was found (cameras, frames, ...)
+# A tracked mesh fits the template (or its own canonical shape) to a few mm; far more means other units,
+# another topology or another vertex order.
+LARGE_FIT_RMS_MM = 20.0
 _TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 # What the local pool's server imports once, so each forked worker starts with them loaded.
 WORKER_PRELOAD = (
@@ -113,15 +118,21 @@ class IngestSummary:
     camera_disagreement_mm: float
     camera_disagreement_deg: float
     reasons: dict[str, int] = field(default_factory=dict)
+    tracker_cameras: int = (
+        0  # cameras compared with the tracker's (none for meshes shipped in the native world)
+    )
 
     def lines(self) -> list[str]:
         out = [
             f"{self.dataset}: {self.rows} rows written, {self.quarantined} quarantined, "
             f"{self.subjects} subjects ({self.resumed_subjects} resumed), {self.bytes / 1e6:.1f} MB, "
-            f"{self.seconds:.1f} s -> {self.path}",
-            f"native vs tracker cameras: worst {self.camera_disagreement_mm:.3f} mm, "
-            f"{self.camera_disagreement_deg:.4f} deg",
+            f"{self.seconds:.1f} s -> {self.path}"
         ]
+        if self.tracker_cameras:
+            out.append(
+                f"native vs tracker cameras: worst {self.camera_disagreement_mm:.3f} mm, "
+                f"{self.camera_disagreement_deg:.4f} deg ({self.tracker_cameras} cameras)"
+            )
         out += [f"  quarantined ({stage}): {count}" for stage, count in sorted(self.reasons.items())]
         return out
 
@@ -266,20 +277,54 @@ def alignment_failures(tasks: list[SubjectTask]) -> list[str]:
     return [reason for task in tasks for _, reason in sorted(task.failures.items())]
 
 
-def _listed(reasons: list[str]) -> list[str]:
-    """The first ``SHOWN_REASONS`` distinct reasons as indented lines (with how often each occurs), and
-    how many more there are."""
+def _listed(reasons: list[str], limit: int | None = SHOWN_REASONS) -> list[str]:
+    """The first ``limit`` distinct reasons (every one when None) as indented lines, with how often each
+    occurs, and how many more there are."""
     counts = Counter(reasons)
     distinct = list(counts)  # first-seen order
-    lines = [
-        f"    {r}" + (f" ({counts[r]} times)" if counts[r] > 1 else "") for r in distinct[:SHOWN_REASONS]
-    ]
-    if len(distinct) > SHOWN_REASONS:
-        more = len(distinct) - SHOWN_REASONS
+    shown = distinct if limit is None else distinct[:limit]
+    lines = [f"    {r}" + (f" ({counts[r]} times)" if counts[r] > 1 else "") for r in shown]
+    if len(distinct) > len(shown):
+        more = len(distinct) - len(shown)
         lines.append(
             f"    ... and {more} more reasons (a written dataset lists every item in quarantine.jsonl)"
         )
     return lines
+
+
+def listed_values(values, limit: int = SHOWN_VALUES) -> str:
+    """``a, b, c`` for a list (``... and N more`` past ``limit``), ``key: value; ...`` for a mapping."""
+    if isinstance(values, dict):
+        items = [f"{key}: {listed_values(value, limit)}" for key, value in values.items()]
+        separator = "; "
+    elif isinstance(values, (list, tuple, set)):
+        items = [str(value) for value in values]
+        separator = ", "
+    else:
+        return str(values)
+    text = separator.join(items[:limit])
+    return text + (f" ... and {len(items) - limit} more" if len(items) > limit else "")
+
+
+def fit_residual_lines(report: dict) -> list[str]:
+    """The worst template fit residual of the tracked meshes, flagged when it is too large to be a fit."""
+    residuals = {
+        subject: entry["mesh_fit_rms_mm"]
+        for subject, entry in report["subjects"].items()
+        if entry["mesh_fit_rms_mm"] is not None
+    }
+    if not residuals:
+        return []
+    subject = max(residuals, key=residuals.get)
+    worst = residuals[subject]
+    if worst <= LARGE_FIT_RMS_MM:
+        return [f"  template fit: worst residual {worst:.3f} mm (subject {subject})"]
+    large = sorted(s for s, value in residuals.items() if value > LARGE_FIT_RMS_MM)
+    return [
+        f"  template fit: residual {worst:.1f} mm for subject {subject} is too large for a fit of the same head "
+        f"(over {LARGE_FIT_RMS_MM:g} mm for {len(large)} of {len(residuals)} subjects): the tracked meshes and "
+        f"the template differ in units (mm vs m?), topology or vertex order"
+    ]
 
 
 def rig_unplaceable(plan: DatasetPlan, tasks: list[SubjectTask]) -> str | None:
@@ -408,20 +453,32 @@ def prepare(
     return settings, loaded, tasks
 
 
-def found_lines(plan: DatasetPlan, settings: IngestSettings, tasks: list[SubjectTask]) -> list[str]:
-    """What was found, printed before writing: layout, counts, refusals, camera agreement, size."""
+def found_lines(
+    plan: DatasetPlan, settings: IngestSettings, tasks: list[SubjectTask], every_reason: bool = False
+) -> list[str]:
+    """What was found, printed before writing: layout, counts, refusals (every distinct reason with
+    ``every_reason``, as the dry run prints them), tracking, fit residuals, camera agreement, size."""
     report = alignment_report(tasks)
-    worst_mm = max((c["centre_mm"] for c in report["cameras"].values()), default=0.0)
-    worst_deg = max((c["angle_deg"] for c in report["cameras"].values()), default=0.0)
+    limit = None if every_reason else SHOWN_REASONS
     failed = sum(len(t.failures) for t in tasks)
     refused = planning_reasons(plan)
+    tracking = (
+        f"  tracking: {sum(len(t.alignments) for t in tasks)} frames aligned, {failed} without a usable mesh"
+    )
+    if report["cameras"]:
+        worst_mm = max(c["centre_mm"] for c in report["cameras"].values())
+        worst_deg = max(c["angle_deg"] for c in report["cameras"].values())
+        tracking += (
+            f"; native vs tracker cameras agree to {worst_mm:.3f} mm / {worst_deg:.4f} deg "
+            f"({len(report['cameras'])} cameras)"
+        )
     lines = [
         f"{plan.source_dataset} ({plan.layout} layout {plan.layout_version}) at {plan.source_root}",
         f"  {len(plan.subjects)} subjects, {plan.view_count} views, {len(refused)} refused while planning",
-        *_listed(refused),
-        f"  tracking: {sum(len(t.alignments) for t in tasks)} frames aligned, {failed} without a usable mesh; "
-        f"native vs tracker cameras agree to {worst_mm:.3f} mm / {worst_deg:.4f} deg",
-        *_listed(alignment_failures(tasks)),
+        *_listed(refused, limit),
+        tracking,
+        *_listed(alignment_failures(tasks), limit),
+        *fit_residual_lines(report),
     ]
     worst = sorted(report["cameras"].items(), key=lambda item: -item[1]["centre_mm"])
     for camera, entry in worst[:5]:
@@ -435,13 +492,25 @@ def found_lines(plan: DatasetPlan, settings: IngestSettings, tasks: list[Subject
             "  light rig: cannot be placed, no frame could be aligned; the ingest stops before writing"
         )
     for key, value in sorted(plan.found.items()):
-        text = ", ".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
-        lines.append(f"  {key}: {text[:200]}")
+        lines.append(f"  {key}: {listed_values(value)}")
     lines.append(
         f"  output: {plan.view_count} images of {settings.out_size}x{settings.out_size} ({settings.encoding}), "
         f"about {estimate_bytes(plan.view_count, settings.out_size, settings.encoding) / 1e6:.1f} MB"
     )
     return lines
+
+
+def nothing_to_write(plan: DatasetPlan, tasks: list[SubjectTask]) -> str | None:
+    """Why an ingest of ``plan`` would write no row (no view, or no view of an aligned frame), naming the
+    first reason; None when some view can be written."""
+    if any(int(v.frame) in t.alignments for t in tasks for v in t.plan.views):
+        return None
+    reasons = planning_reasons(plan) + alignment_failures(tasks)
+    first = f"; first: {reasons[0]}" if reasons else ""
+    what = (
+        "no view was found" if not plan.view_count else "no view belongs to a frame aligned with the tracking"
+    )
+    return f"{plan.source_root}: nothing to write, {what} ({len(reasons)} refusals and failed frames{first})"
 
 
 def run_tasks(
@@ -497,6 +566,9 @@ def ingest_dataset(
     settings, loaded, tasks = prepared or prepare(
         plan, Path(tracking_dir) if tracking_dir else None, preset, template, encoding, workers, executor
     )
+    empty = nothing_to_write(plan, tasks)
+    if empty:
+        raise InputError(empty)
     lights, light_facts = _lights(plan, tasks)
     lighting = (
         f"OLAT light stage: {len(lights)} point lights (lights.arrow) and full-on frames"
@@ -548,6 +620,11 @@ def ingest_dataset(
     if plan.refusals:
         reasons["plan"] = reasons.get("plan", 0) + len(plan.refusals)
     cameras = report["alignment"]["cameras"].values()
+    if manifest.counts["images"] == 0:
+        raise InputError(
+            f"{dataset_dir}: no row was written, every view was quarantined ({manifest.quarantined} items; "
+            f"the reasons are in {dataset_dir / QUARANTINE_NAME})"
+        )
     total_bytes = sum(entry.bytes for entry in manifest.shards)
     return IngestSummary(
         dataset=plan.dataset,
@@ -562,4 +639,5 @@ def ingest_dataset(
         camera_disagreement_mm=max((c["centre_mm"] for c in cameras), default=0.0),
         camera_disagreement_deg=max((c["angle_deg"] for c in cameras), default=0.0),
         reasons=reasons,
+        tracker_cameras=len(cameras),
     )
