@@ -102,6 +102,19 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         help="Size in pixels of the sensor the calibration's K describes, when it is not the layout's "
         "own (Ava-256: 2668x4096; NeRSemble: the file's width/height or 2200x3208).",
     )
+    @click.option(
+        "--tracking-fps",
+        type=click.FloatRange(min=0, min_open=True),
+        default=None,
+        help="Frame rate the tracked frames were extracted at (VHAP's default is 25), when the tracking "
+        "does not match the capture's video frame for frame.",
+    )
+    @click.option(
+        "--no-neck-mask",
+        is_flag=True,
+        help="Accept a template without its neck_mask.txt: masks and crops then include the neck "
+        "(recorded in the manifest).",
+    )
     @workers_option()
     @executor_option()
     @dry_run_option("Print what was found and the estimated size, write nothing.")
@@ -120,6 +133,8 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         all_frames,
         sequence,
         sensor_size,
+        tracking_fps,
+        no_neck_mask,
         workers,
         executor,
         dry_run,
@@ -131,6 +146,7 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
             nothing_to_write,
             prepare,
         )
+        from relightanyone.ingest.tracking import TrackingOptions  # imports torch through the calibration
 
         adapter = load_adapter(command_name)
         held_out = set(test_subjects or ()) | set(published_test_subjects(splits_file) if splits_file else ())
@@ -150,7 +166,16 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
             # workers' imports overlap the planning.
             ingest_executor(workers, executor).warm()
         plan = adapter.plan(src, options)
-        prepared = prepare(plan, tracking, preset, template, workers=workers, executor=executor)
+        tracking_options = TrackingOptions(tracking_fps=tracking_fps, no_neck_mask=no_neck_mask)
+        prepared = prepare(
+            plan,
+            tracking,
+            preset,
+            template,
+            workers=workers,
+            executor=executor,
+            tracking_options=tracking_options,
+        )
         for line in found_lines(plan, prepared[0], prepared[2], every_reason=dry_run):
             click.echo(line)
         empty = nothing_to_write(plan, prepared[2])

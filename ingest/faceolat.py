@@ -32,7 +32,7 @@ import numpy as np
 
 from relightanyone.align.colour import read_faceolat_colour_matrix
 from relightanyone.ingest.adapter_common import adapter_plan
-from relightanyone.ingest.calibration import CalibrationError
+from relightanyone.ingest.calibration import CalibrationError, downsample_factor
 from relightanyone.ingest.decode import header_size
 from relightanyone.ingest.metashape import read_metashape_xml
 from relightanyone.ingest.records import (
@@ -287,19 +287,18 @@ def _native_cameras(
     for index, name in enumerate(rig.cameras.names):
         one = rig.cameras[index]
         width, height = int(one.width[0]), int(one.height[0])
+        K = one.K[0].numpy().astype(np.float64)
         if name in image_sizes and image_sizes[name] != (width, height):
-            new_w, new_h = image_sizes[name]
-            # A resize rounds each side to whole pixels: the two scales differ by at most half a pixel each.
-            if abs(new_w / width - new_h / height) > 0.5 / width + 0.5 / height:
-                problems[name] = (
-                    f"frames are {new_w}x{new_h} but the calibration is for {width}x{height} (other aspect ratio)"
-                )
+            try:  # the calibration's sensor size against the frames'; the rig's principal points check it
+                downscale = downsample_factor(rig.cameras.K.numpy(), image_sizes[name], (width, height))
+            except ValueError as error:
+                problems[name] = f"frames do not fit the calibration of camera {name}: {error}"
                 continue
-            one = one.resize((new_w, new_h))
-            width, height = new_w, new_h
+            K = downscale.intrinsics(K)
+            width, height = image_sizes[name]
         cameras[name] = NativeCamera(
             name=name,
-            K=one.K[0].numpy().astype(np.float64),
+            K=K,
             w2c=one.w2c[0].numpy().astype(np.float64),
             dist=one.dist[0, :5].numpy().astype(np.float64),
             width=width,

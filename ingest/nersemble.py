@@ -130,8 +130,9 @@ def choose_sequence(folder: Path, version: str, wanted: str | None) -> str | Non
     return names[0] if names else None
 
 
-def video_info(path: Path) -> tuple[int, int, int]:
-    """``(width, height, frame_count)`` of a video from its container (no decoding); ValueError if unreadable."""
+def video_info(path: Path) -> tuple[int, int, int, float | None]:
+    """``(width, height, frame_count, frames per second)`` of a video from its container (no decoding; the
+    rate is None when the container states none); ValueError if unreadable."""
     import av
 
     try:
@@ -142,7 +143,9 @@ def video_info(path: Path) -> tuple[int, int, int]:
             count = int(stream.frames)
             if count <= 0:  # containers without a frame count: count the packets (no decoding)
                 count = sum(1 for packet in container.demux(stream) if packet.size)
-            return int(stream.codec_context.width), int(stream.codec_context.height), count
+            rate = stream.average_rate or stream.base_rate
+            fps = float(rate) if rate else None
+            return int(stream.codec_context.width), int(stream.codec_context.height), count, fps
     except (av.error.FFmpegError, OSError) as error:
         raise LayoutError(f"{path}: not a readable video ({error})") from None
 
@@ -233,7 +236,7 @@ def _plan_v2(
 
     videos_dir = folder / "sequences" / sequence / "images"
     videos = {m.group(1): p for p in sorted(videos_dir.glob("cam_*.mp4")) if (m := _VIDEO.match(p.name))}
-    infos: dict[str, tuple[int, int, int]] = {}
+    infos: dict[str, tuple[int, int, int, float | None]] = {}
     for serial, path in videos.items():
         if not options.keeps_camera(serial):
             continue
@@ -272,7 +275,19 @@ def _plan_v2(
                     f"camera {serial} is absent from {V2_CALIBRATION}",
                 )
             )
-    longest = max(count for _, _, count in infos.values())
+    longest = max(count for _, _, count, _ in infos.values())
+    rates = sorted({fps for *_, fps in infos.values() if fps})
+    plan.frame_rate, plan.frame_count = (rates[0] if len(rates) == 1 else None), longest
+    if len(rates) > 1:  # the cameras disagree: no single native clock to pair the tracking with
+        plan.refusals.append(
+            Refusal(
+                subject,
+                relpath(f"sequences/{sequence}/images"),
+                f"the videos run at different frame rates ({', '.join(f'{r:g}' for r in rates)} fps)",
+            )
+        )
+        return
+    facts.update(frame_rate=rates[0] if rates else None)
     frames = sorted(options.frames) if options.frames is not None else list(range(longest))
     for serial in sorted(cameras):
         if not options.keeps_camera(serial):
@@ -292,7 +307,7 @@ def _plan_v2(
                 )
             )
             continue
-        width, height, count = infos[serial]
+        width, height, count, _ = infos[serial]
         camera = cameras[serial]
         if (width, height) != (camera.width, camera.height):
             plan.refusals.append(
@@ -339,6 +354,9 @@ def _plan_v1(
         if (m := _FRAME_DIR.match(p.name)) and (p / V1_IMAGE_DIR).is_dir()
     }
     frames = sorted(f for f in frame_dirs if options.keeps_frame(f))
+    # v1's frame folders are the 73 fps video's frames (the image folder's name states the rate).
+    plan.frame_rate = float(re.search(r"(\d+)fps", V1_IMAGE_DIR).group(1))
+    plan.frame_count = max(frame_dirs, default=-1) + 1
     for frame in sorted(set(options.frames or ()) - set(frame_dirs)):
         plan.refusals.append(
             Refusal(

@@ -147,6 +147,10 @@ class SubjectPlan:
     head_poses: dict[int, np.ndarray] = field(default_factory=dict)
     # Facts about this subject printed before writing (image sizes, downscale, ...).
     found: dict = field(default_factory=dict)
+    # The capture's native frame rate (fps) and frame count, where a container states them (videos): the
+    # tracking's timesteps are paired with native frames against them. None for captures of still images.
+    frame_rate: float | None = None
+    frame_count: int | None = None
 
 
 @dataclass

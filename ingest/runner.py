@@ -55,10 +55,13 @@ from relightanyone.format.shards import ShardWriter
 from relightanyone.ingest.records import DatasetPlan, SubjectPlan
 from relightanyone.ingest.subject_task import IngestSettings, SubjectTask, run_subject_task
 from relightanyone.ingest.tracking import (
+    NECK_MASK_NAMES,
     TRANSFORMS_NAME,
     AlignmentError,
     Template,
+    TrackingOptions,
     align_subject,
+    check_export_mode,
     find_template,
     load_template,
     shipped_tracking,
@@ -151,10 +154,13 @@ def subject_tracking_folder(tracking_dir: Path, subject: str) -> Path:
 
 
 def check_tracking_dir(tracking_dir: Path, subjects: list[str]) -> None:
-    """Raise naming what to pass when no subject of the plan has a folder under ``tracking_dir``."""
+    """Raise naming what to pass when no subject of the plan has a folder under ``tracking_dir``, or when
+    a subject's export is one the toolkit cannot read (VHAP's parameter mode), before anything is read."""
     tracking_dir = Path(tracking_dir)
     if not tracking_dir.is_dir():
         raise FileNotFoundError(f"tracking folder {tracking_dir} does not exist")
+    for subject in subjects:
+        check_export_mode(tracking_dir / subject)
     if not subjects or any((tracking_dir / s / TRANSFORMS_NAME).is_file() for s in subjects):
         return
     nested = sorted(
@@ -189,9 +195,10 @@ def native_cameras_by_frame(plan: SubjectPlan) -> dict[int, dict[str, np.ndarray
     return out
 
 
-def _align_subject_item(item: tuple, template: Template):
-    """:func:`align_subject` of one ``(subject, native cameras by frame, tracking)`` item."""
-    return align_subject(*item, template)
+def _align_subject_item(item: tuple, template: Template, options: TrackingOptions):
+    """:func:`align_subject` of one ``(subject, native cameras by frame, tracking, clock)`` item."""
+    subject, native, tracking, clock = item
+    return align_subject(subject, native, tracking, template, clock, options)
 
 
 def plan_tasks(
@@ -200,6 +207,7 @@ def plan_tasks(
     template: Template,
     workers: int = 1,
     executor: str = "local",
+    options: TrackingOptions | None = None,
 ) -> list[SubjectTask]:
     """Relate every (subject, frame) of ``plan`` to the tracking (no pixel is decoded): the VHAP export
     under ``tracking_dir``, or, without one, the meshes the plan ships (custom captures). Subjects are
@@ -212,11 +220,19 @@ def plan_tasks(
             tracking = subject_tracking_folder(tracking_dir, subject.subject)
         else:
             tracking = shipped_tracking(Path(plan.source_root), subject.meshes, plan.mesh_units_to_m)
-        items.append((subject.subject, native_cameras_by_frame(subject), tracking))
-    aligned = ingest_executor(workers, executor).map(partial(_align_subject_item, template=template), items)
+        clock = (subject.frame_rate, subject.frame_count)
+        items.append((subject.subject, native_cameras_by_frame(subject), tracking, clock))
+    align = partial(_align_subject_item, template=template, options=options or TrackingOptions())
+    aligned = ingest_executor(workers, executor).map(align, items)
     tasks = [
-        SubjectTask(task_name(subject.subject), subject, alignments, failures)
-        for subject, (alignments, failures) in zip(subjects, aligned, strict=True)
+        SubjectTask(
+            task_name(subject.subject),
+            subject,
+            alignments,
+            failures,
+            pairing if tracking_dir is not None else "",
+        )
+        for subject, (alignments, failures, pairing) in zip(subjects, aligned, strict=True)
     ]
     names = [t.task for t in tasks]
     if len(set(names)) != len(names):
@@ -232,6 +248,7 @@ def alignment_report(tasks: list[SubjectTask]) -> dict:
     for task in tasks:
         residuals = [a.fit_rms_mm for a in task.alignments.values()]
         subjects[task.plan.subject] = {
+            "frame_pairing": task.frame_pairing or None,
             "frames_aligned": len(task.alignments),
             "frames_failed": {str(f): reason for f, reason in sorted(task.failures.items())},
             "mesh_fit_rms_mm": round(max(residuals), 4) if residuals else None,
@@ -421,12 +438,15 @@ def prepare(
     encoding: str | None = None,
     workers: int = 1,
     executor: str = "local",
+    tracking_options: TrackingOptions | None = None,
 ) -> tuple[IngestSettings, Template, list[SubjectTask]]:
     """Everything before writing: settings, the template and every frame related to the tracking.
 
     ``tracking_dir`` None uses the meshes the plan ships (custom captures); then ``template`` is needed
     unless the dataset folder holds ``template.obj``. ``workers``/``executor`` as for the ingest itself.
+    A template without its neck mask is refused unless ``tracking_options.no_neck_mask``.
     """
+    tracking_options = tracking_options or TrackingOptions()
 
     if preset not in PRESET_SIZES:
         raise ValueError(f"unknown preset {preset!r}; expected one of {', '.join(PRESET_SIZES)}")
@@ -437,6 +457,12 @@ def prepare(
         )
     template_path = find_template(Path(tracking_dir or plan.source_root), template)
     loaded = load_template(template_path)
+    if loaded.neck_mask_path is None and not tracking_options.no_neck_mask:
+        raise InputError(
+            f"{template_path}: the template has no neck mask ({' or '.join(NECK_MASK_NAMES)} beside it: one "
+            "0/1 per template vertex, 1 = below the neck line), so masks and crops would include the neck; "
+            "put it beside the template, or pass --no-neck-mask to ingest without a neck cut"
+        )
     if tracking_dir is not None:
         check_tracking_dir(Path(tracking_dir), [s.subject for s in plan.subjects])
     settings = IngestSettings(
@@ -449,7 +475,8 @@ def prepare(
         encoding=encoding or DEFAULT_IMAGE_ENCODING,
         video_threads=ingest_executor(workers, executor).cpu_share(),
     )
-    tasks = plan_tasks(plan, Path(tracking_dir) if tracking_dir else None, loaded, workers, executor)
+    tracking = Path(tracking_dir) if tracking_dir else None
+    tasks = plan_tasks(plan, tracking, loaded, workers, executor, tracking_options)
     return settings, loaded, tasks
 
 
@@ -479,6 +506,7 @@ def found_lines(
         tracking,
         *_listed(alignment_failures(tasks), limit),
         *fit_residual_lines(report),
+        *[f"  tracking frames: {p}" for p in sorted({t.frame_pairing for t in tasks if t.frame_pairing})],
     ]
     worst = sorted(report["cameras"].items(), key=lambda item: -item[1]["centre_mm"])
     for camera, entry in worst[:5]:
@@ -505,6 +533,9 @@ def nothing_to_write(plan: DatasetPlan, tasks: list[SubjectTask]) -> str | None:
     first reason; None when some view can be written."""
     if any(int(v.frame) in t.alignments for t in tasks for v in t.plan.views):
         return None
+    unplaceable = rig_unplaceable(plan, tasks)  # an OLAT capture says why in the light rig's terms
+    if unplaceable:
+        return unplaceable
     reasons = planning_reasons(plan) + alignment_failures(tasks)
     first = f"; first: {reasons[0]}" if reasons else ""
     what = (
@@ -550,6 +581,7 @@ def ingest_dataset(
     template: Path | None = None,
     encoding: str | None = None,
     prepared: tuple[IngestSettings, Template, list[SubjectTask]] | None = None,
+    tracking_options: TrackingOptions | None = None,
 ) -> IngestSummary:
     """Turn ``plan`` into ``out_root/<plan.dataset>/``; resumes an interrupted run of the same config.
 
@@ -560,11 +592,19 @@ def ingest_dataset(
         workers, executor: ``"local"`` (process pool) or ``"ray"``; one task per subject.
         template: the template OBJ (default: found next to the tracking export).
         prepared: the result of :func:`prepare` when the caller already ran it (the CLI prints it first).
+        tracking_options: what the user states about the tracking (:class:`TrackingOptions`).
     """
 
     start = time.perf_counter()
     settings, loaded, tasks = prepared or prepare(
-        plan, Path(tracking_dir) if tracking_dir else None, preset, template, encoding, workers, executor
+        plan,
+        Path(tracking_dir) if tracking_dir else None,
+        preset,
+        template,
+        encoding,
+        workers,
+        executor,
+        tracking_options,
     )
     empty = nothing_to_write(plan, tasks)
     if empty:
@@ -584,7 +624,8 @@ def ingest_dataset(
             source_dataset=plan.source_dataset,
             licence=plan.licence,
             tracker=TRACKER_NAME if tracking_dir is not None else SHIPPED_TRACKER_NAME,
-            template=f"{TEMPLATE_NAME} sha256:{loaded.sha256}",
+            template=f"{TEMPLATE_NAME} sha256:{loaded.sha256}"
+            + ("" if loaded.neck_mask_path else " (no neck mask: --no-neck-mask, masks include the neck)"),
         ),
         config_fingerprint=_fingerprint(plan, settings, loaded),
     )
