@@ -3,11 +3,14 @@ points, the native->tracker fit on the whole rig whatever ``--cameras`` keeps, d
 
 from __future__ import annotations
 
+import io
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 from helpers.ava_capture import REAL_SENSOR, SENSOR, SUBJECT, downscaled, drop_image, write_ava_capture
+from PIL import Image
 
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.ingest import ava256
@@ -69,6 +72,36 @@ def test_real_rig_factors_come_from_the_image_size():
             np.testing.assert_allclose(stored[:, 1, 2], (K[:, 1, 2] + 0.5) / factor - 0.5)
     with pytest.raises(ValueError, match="no downscale"):
         downsample_factor(K, (300, 512), REAL_SENSOR)
+
+
+@pytest.mark.skipif(not REAL_CALIBRATION.is_file(), reason="the real Ava-256 rig calibration is not present")
+@pytest.mark.parametrize("factor", [8, 16])
+def test_real_rig_capture_plans_every_view_at_small_downscales(tmp_path, factor):
+    """The release layout on the real 80-camera calibration, images for three cameras, ``--cameras``."""
+    decoder = tmp_path / f"20230405--1635--{SUBJECT}" / "decoder"
+    (decoder / "image").mkdir(parents=True)
+    (decoder / "head_pose").mkdir()
+    (decoder / "camera_calibration.json").write_bytes(REAL_CALIBRATION.read_bytes())
+    (decoder / "frame_list.csv").write_text("seg_id,frame_id\nEXP_neutral_peak,7\n")
+    with zipfile.ZipFile(decoder / "head_pose" / "head_pose.zip", "w") as archive:
+        archive.writestr("000007.txt", "1 0 0 0\n0 1 0 0\n0 0 1 0\n")
+    rig = read_krt_json(REAL_CALIBRATION)
+    kept = tuple(rig.names[:3])
+    size = downscaled(REAL_SENSOR, factor)
+    buffer = io.BytesIO()
+    Image.fromarray(np.zeros((size[1], size[0], 3), np.uint8)).save(buffer, format="AVIF", quality=50)
+    for camera in kept:
+        with zipfile.ZipFile(decoder / "image" / f"cam{camera}.zip", "w") as archive:
+            archive.writestr(f"cam{camera}/000007.avif", buffer.getvalue())
+    plan = ava256.plan(tmp_path, AdapterOptions(cameras=kept))
+    assert not [r for s in plan.subjects for r in s.refusals]
+    assert sorted(v.camera.name for v in plan.subjects[0].views) == sorted(kept)
+    assert len(plan.subjects[0].rig_w2c) == len(rig.names) == 80  # the fit sees the whole rig
+    for view in plan.subjects[0].views:
+        index = rig.names.index(view.camera.name)
+        K = rig.K[index].numpy()
+        np.testing.assert_allclose(view.camera.K[1, 1], K[1, 1] / factor)
+        np.testing.assert_allclose(view.camera.K[0, 2], (K[0, 2] + 0.5) * size[0] / REAL_SENSOR[0] - 0.5)
 
 
 def test_selected_cameras_are_written_with_the_fit_on_the_whole_rig(tmp_path):
