@@ -9,19 +9,27 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 from helpers.ava_capture import REAL_SENSOR, SENSOR, SUBJECT, downscaled, drop_image, write_ava_capture
 from PIL import Image
 
+from relightanyone.cli import cli
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.ingest import ava256
 from relightanyone.ingest.calibration import downsample_factor, read_krt_json
 from relightanyone.ingest.records import AdapterOptions
 from relightanyone.ingest.runner import ingest_dataset
 
-REAL_CALIBRATION = (
-    Path(__file__).resolve().parents[2]
-    / "shared/fixtures/real/ava-256/full_rig_6933dab/camera_calibration.json"
-)
+RIG_CALIBRATION = "ava-256/full_rig_6933dab/camera_calibration.json"  # under the real fixtures
+
+
+@pytest.fixture
+def real_calibration(real_fixtures) -> Path:
+    """The real 80-camera Ava-256 calibration; skips with the reason when it is not present."""
+    path = real_fixtures / RIG_CALIBRATION
+    if not path.is_file():
+        pytest.skip(f"the real Ava-256 rig calibration is not at {path}")
+    return path
 
 
 def ingest(capture, plan, out):
@@ -56,9 +64,8 @@ def test_a_calibration_for_another_sensor_is_refused_with_the_size_to_pass(tmp_p
     assert "principal points" in reason and "--sensor-size" in reason and "2668x4096" in reason
 
 
-@pytest.mark.skipif(not REAL_CALIBRATION.is_file(), reason="the real Ava-256 rig calibration is not present")
-def test_real_rig_factors_come_from_the_image_size():
-    rig = read_krt_json(REAL_CALIBRATION)
+def test_real_rig_factors_come_from_the_image_size(real_calibration):
+    rig = read_krt_json(real_calibration)
     K = rig.K.numpy()
     centre = np.median(K[:, :2, 2], axis=0)
     assert abs(centre[0] - 1482) < 20 and abs(centre[1] - 1710) < 20  # off-centre, as the issue describes
@@ -74,18 +81,17 @@ def test_real_rig_factors_come_from_the_image_size():
         downsample_factor(K, (300, 512), REAL_SENSOR)
 
 
-@pytest.mark.skipif(not REAL_CALIBRATION.is_file(), reason="the real Ava-256 rig calibration is not present")
 @pytest.mark.parametrize("factor", [8, 16])
-def test_real_rig_capture_plans_every_view_at_small_downscales(tmp_path, factor):
+def test_real_rig_capture_plans_every_view_at_small_downscales(real_calibration, tmp_path, factor):
     """The release layout on the real 80-camera calibration, images for three cameras, ``--cameras``."""
     decoder = tmp_path / f"20230405--1635--{SUBJECT}" / "decoder"
     (decoder / "image").mkdir(parents=True)
     (decoder / "head_pose").mkdir()
-    (decoder / "camera_calibration.json").write_bytes(REAL_CALIBRATION.read_bytes())
+    (decoder / "camera_calibration.json").write_bytes(real_calibration.read_bytes())
     (decoder / "frame_list.csv").write_text("seg_id,frame_id\nEXP_neutral_peak,7\n")
     with zipfile.ZipFile(decoder / "head_pose" / "head_pose.zip", "w") as archive:
         archive.writestr("000007.txt", "1 0 0 0\n0 1 0 0\n0 0 1 0\n")
-    rig = read_krt_json(REAL_CALIBRATION)
+    rig = read_krt_json(real_calibration)
     kept = tuple(rig.names[:3])
     size = downscaled(REAL_SENSOR, factor)
     buffer = io.BytesIO()
@@ -125,3 +131,16 @@ def test_a_dropped_frame_quarantines_only_its_own_view(tmp_path):
     keys = NormalizedDataset(summary.path).keys
     assert not any(k.endswith(f"{SUBJECT}/000014/{kept[1]}/full") for k in keys)
     assert downscaled(SENSOR, 4) == capture.image_size
+
+
+def test_cli_sensor_size_and_dry_run_report_the_downscale(tmp_path):
+    capture = write_ava_capture(tmp_path, factor=8, cameras=4)
+    args = ["ingest", "ava256", str(capture.root), "--tracking", str(capture.tracking), "--out",
+            str(tmp_path / "out"), "--template", str(capture.template), "--preset", "tiny", "--dry-run"]  # fmt: skip
+    result = CliRunner().invoke(cli, [*args, "--sensor-size", "167x256"])
+    assert result.exit_code == 0, result.output
+    assert "21x32 = 167x256 sensor / 8" in result.output and "8 views, 0 refused" in result.output
+    refused = CliRunner().invoke(cli, args)  # read as the 2668x4096 sensor: every camera refused, exit 1
+    assert refused.exit_code == 1 and "--sensor-size" in refused.output
+    bad = CliRunner().invoke(cli, [*args, "--sensor-size", "big"])
+    assert bad.exit_code == 2 and "WIDTHxHEIGHT" in bad.output
