@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import json
 import re
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -185,7 +184,6 @@ def plan(src: Path, options: AdapterOptions | None = None) -> DatasetPlan:
     cameras, document, scale = read_cameras_json(cameras_path)
     encoding = document.get("encoding", "srgb")
     subjects: list[SubjectPlan] = []
-    sizes: Counter[str] = Counter()  # image sizes read from the headers, for the report before writing
     subject_dirs = sorted(p for p in (src / "images").iterdir() if p.is_dir())
     if not subject_dirs:
         raise LayoutError(
@@ -232,7 +230,6 @@ def plan(src: Path, options: AdapterOptions | None = None) -> DatasetPlan:
                         )
                     )
                     continue
-                sizes[f"{size[0]}x{size[1]}" if size else "unreadable header"] += 1
                 alpha = _find_alpha(src, subject, frame_dir.name, camera)
                 views.append(
                     SourceView(
@@ -272,7 +269,6 @@ def plan(src: Path, options: AdapterOptions | None = None) -> DatasetPlan:
             "cameras": sorted({v.camera.name for s in subjects for v in s.views}),
             "units": document["units"],
             "encoding": encoding,
-            "image_size": [f"{size} ({count} images)" for size, count in sorted(sizes.items())],
         },
         mesh_units_to_m=scale,
     )

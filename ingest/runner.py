@@ -519,6 +519,11 @@ def found_lines(
         lines.append(
             "  light rig: cannot be placed, no frame could be aligned; the ingest stops before writing"
         )
+    sizes = Counter(f"{v.camera.width}x{v.camera.height}" for s in plan.subjects for v in s.views)
+    if sizes:
+        lines.append(
+            f"  image sizes: {listed_values([f'{k} ({n} views)' for k, n in sorted(sizes.items())])}"
+        )
     for key, value in sorted(plan.found.items()):
         lines.append(f"  {key}: {listed_values(value)}")
     lines.append(

@@ -36,7 +36,7 @@ def test_dry_run_prints_every_refusal_sizes_and_residuals(capture, tmp_path):
     for k in range(7):
         assert f"camera 'x{k}' is not in" in result.output
     assert "image is 48x64 but cameras.json gives camera c1 96x128" in result.output
-    assert "image_size: 96x128 (15 images)" in result.output
+    assert "image sizes: 96x128 (15 views)" in result.output
     assert "template fit: worst residual" in result.output
     # Meshes shipped in the native world: no tracker cameras to agree with.
     assert "native vs tracker" not in result.output and "agree to" not in result.output
