@@ -14,6 +14,11 @@ shape would shrink or grow the subject's head towards the template's size. The r
 subject's own ``canonical.obj`` when the export has one (VHAP's mesh mode writes the tracked shape in the
 unposed head frame) and the template otherwise; the fit uses the vertices above the neck line, which
 move with the skull.
+
+Each tracked timestep (``timestep_index_original``) is paired with a native frame of the capture by
+:func:`timestep_mapping`, from evidence: the rate the user or the export states, checked against the
+video's length, or timesteps that only one reading fits; an ambiguous or impossible pairing stops the
+ingest (:class:`TrackingMismatchError`) instead of mispairing frames.
 """
 
 from __future__ import annotations
@@ -105,8 +110,9 @@ def timestep_mapping(
         else (None, "")
     )
     if frame_rate is None or frame_rate <= 0:
+        ignored = f"; {source} does not apply" if stated is not None else ""
         return TimestepMapping(
-            1.0, "timesteps are native frame numbers (the capture has no video frame rate)"
+            1.0, f"timesteps are native frame numbers (the capture has no video frame rate{ignored})"
         )
     last = max(timesteps, default=0)
     if stated is not None:
@@ -126,8 +132,10 @@ def timestep_mapping(
                 f"past the video's {frame_count} frames: the tracking was not made at that rate from this video"
             )
         return mapping
-    if len(set(timesteps)) <= 1 or frame_count is None:
+    if len(set(timesteps)) <= 1:
         return TimestepMapping(1.0, "timesteps are native frame numbers (a single tracked timestep)")
+    if frame_count is None:
+        return TimestepMapping(1.0, "timesteps are native frame numbers (the video's length is unknown)")
     if last >= frame_count:
         raise TrackingMismatchError(
             f"{where}: tracked timestep {last} is past the video's {frame_count} frames; pass --tracking-fps "

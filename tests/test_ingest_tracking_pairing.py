@@ -19,7 +19,7 @@ from relightanyone.format.reader import NormalizedDataset
 from relightanyone.ingest import nersemble
 from relightanyone.ingest.records import AdapterOptions
 from relightanyone.ingest.runner import ingest_dataset, prepare
-from relightanyone.ingest.tracking import TrackingMismatchError, TrackingOptions
+from relightanyone.ingest.tracking import TrackingMismatchError, TrackingOptions, timestep_mapping
 from relightanyone.synth.presets import DatasetSize
 from relightanyone.synth.truth import DatasetTruth
 
@@ -155,3 +155,26 @@ def test_template_without_neck_mask_needs_an_explicit_opt_out(tmp_path):
     assert result.exit_code == 0, result.output
     manifest = json.loads((out / "custom" / "manifest.json").read_text())
     assert "no neck mask" in manifest["provenance"]["template"]
+
+
+@pytest.mark.parametrize(
+    ("timesteps", "fps", "rate", "count", "native_of_last", "error"),
+    [
+        ([10, 14], None, None, None, 14, None),  # still images: native frame numbers
+        ([10, 14], 25.0, None, None, 14, None),  # a stated rate has no video to apply to
+        ([0, 1, 2, 299], None, 73.0, 300, 299, None),  # past a 25 fps extraction's end: native frames
+        ([0, 1, 2], None, 73.0, 300, None, "cannot tell"),  # both readings fit
+        ([0, 1, 102], 25.0, 73.0, 300, 298, None),  # round(102 * 2.92) = 298
+        ([0, 1, 103], 25.0, 73.0, 300, None, "past the video's 300 frames"),
+        ([0, 400], None, 73.0, 300, None, "past the video's 300 frames"),
+        ([0, 1], 100.0, 73.0, 300, None, "faster than"),
+    ],
+)
+def test_timestep_mapping_rules(timesteps, fps, rate, count, native_of_last, error):
+    options = TrackingOptions(tracking_fps=fps)
+    if error:
+        with pytest.raises(TrackingMismatchError, match=error):
+            timestep_mapping(timesteps, None, rate, count, options, "transforms.json")
+    else:
+        mapping = timestep_mapping(timesteps, None, rate, count, options, "transforms.json")
+        assert mapping.native(timesteps[-1]) == native_of_last
