@@ -18,6 +18,7 @@ import numpy as np
 
 from relightanyone.align.geometry import camera_centre
 from relightanyone.compiled import load_extension
+from relightanyone.format.schema import PADDING_WEIGHT_TOLERANCE
 from relightanyone.render.camera import crop_intrinsics, resize_intrinsics
 
 # Largest ratio of the remapped crop's side to the output's when downscaling (memory: out² · k² pixels).
@@ -229,6 +230,23 @@ def undistort_crop_resize(
     else:
         out = out.astype(img.dtype, copy=False)
     return out, K_new
+
+
+def valid_pixels(K: Any, dist: Any, box: Any, out_size: int, image_size: Any) -> np.ndarray:
+    """``(out_size, out_size)`` bool: the pixels of :func:`undistort_crop_resize`'s output whose value comes
+    from the ``image_size`` ``(width, height)`` source alone, none of their weight on the zero padding.
+
+    Exact for every path of the resampler, because it is that resampler run on an all-ones source: a
+    pixel is valid where the result is 1 (to ``PADDING_WEIGHT_TOLERANCE``). A pinhole crop at least one
+    pixel inside the image (every bilinear tap inside) is all valid without resampling.
+    """
+    width, height = _size_wh(image_size)
+    x0, y0, x1, y1 = (int(v) for v in box)
+    out_size = int(out_size)
+    if not _as_dist(dist).any() and x0 >= 1 and y0 >= 1 and x1 <= width - 1 and y1 <= height - 1:
+        return np.ones((out_size, out_size), dtype=bool)
+    coverage, _ = undistort_crop_resize(np.ones((height, width), np.float32), K, dist, box, out_size)
+    return coverage >= 1.0 - PADDING_WEIGHT_TOLERANCE
 
 
 def _pixel_rays(

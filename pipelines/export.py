@@ -5,7 +5,8 @@ Layout of the export folder::
     <subject>/<frame:06d>/<camera>/<pattern>.exr        linear RGB, OpenEXR (float32 or half, ZIP)
     <subject>/<frame:06d>/<camera>/<pattern>.mask.png   the stored 8-bit mask, 255 = foreground
     cameras.json     one row per image: key, subject, frame, camera, pattern, split, width, height,
-                     K (3x3, pixels of the stored image), w2c (4x4, OpenCV, metres), crop, colour_matrix,
+                     K (3x3, pixels of the stored image), w2c (4x4, OpenCV, metres), crop,
+                     colour_matrix (3x4 affine already applied: rgb = M[:, :3] @ source + M[:, 3]),
                      image and mask file names relative to the export folder
     lights.json      the rig of an OLAT dataset (index, name, position_m, intensity_rgb, pattern); [] if flat
     dataset.json     name, kind, lighting, provenance, conventions, counts (written last: an export

@@ -330,7 +330,7 @@ class Fitter:
         target, mask = self.views.images[view_index], self.views.masks[view_index]
         if background is not None:
             render, target = composite_over_background(render, alpha, target, mask, background)
-            mask = torch.ones_like(mask)
+            mask = self.views.valid[view_index]  # the whole image but the padding past the source
         terms = {
             "l1": masked_l1(render, target, mask).mean(),
             "ssim": ssim_loss(render, target, mask).mean(),

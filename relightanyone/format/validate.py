@@ -1,11 +1,14 @@
 """Checking a normalized dataset, reporting every problem with its file and row.
 
 ``validate_path(DIR)`` accepts one dataset folder or a root holding several and returns a list of
-``Problem``; an empty list means the data is sound. Checks: manifest present and of format version 1;
-every listed file present, of the listed size (truncation) and sha256 (any changed byte); no shard listed
-twice; no unlisted shard or leftover temporary file; shard schema; keys unique across shards and equal to
-the index; sane ``K`` and ``w2c``; images and masks decodable at the declared size; meshes, lights and
-quarantine readable, and the quarantine holding as many entries as the manifest's ``quarantined``.
+``Problem``; an empty list means the data is sound. Checks: manifest present and of the current format
+version; every listed file present, of the listed size (truncation) and sha256 (any changed byte); no shard
+listed twice; no unlisted shard or leftover temporary file; shard schema; every row's image, mask and valid
+bytes matching its checksum (a changed shard is still read, so the corrupted rows are named); keys unique
+across shards and equal to the index; sane ``K`` and ``w2c``; images and masks decodable at the declared
+size, and no mask pixel outside the row's valid pixels (on the zero padding past the source image's edge);
+meshes, lights and quarantine readable, and the quarantine holding as many entries as the manifest's
+``quarantined``.
 """
 
 from __future__ import annotations
@@ -19,9 +22,11 @@ import numpy as np
 import pyarrow as pa
 
 from relightanyone.format.arrow_io import read_table_file
-from relightanyone.format.codecs import CodecError, decode_image, decode_mask
+from relightanyone.format.codecs import CodecError, decode_image, decode_mask, decode_valid
 from relightanyone.format.reader import IncompleteDatasetError, load_manifest
 from relightanyone.format.schema import (
+    CHECKSUM_COLUMN,
+    FORMAT_VERSION,
     IMAGE_SCHEMA,
     INDEX_NAME,
     LIGHT_SCHEMA,
@@ -32,6 +37,7 @@ from relightanyone.format.schema import (
     QuarantineEntry,
     SchemaError,
     camera_problems,
+    row_checksum,
 )
 from relightanyone.format.shards import PARTS_DIR, dataset_dirs
 from relightanyone.hashing import sha256_file
@@ -75,13 +81,27 @@ def _open_stream(
         return None
     if not reader.schema.equals(schema, check_metadata=True):
         problems.append(
-            Problem(str(path), None, f"schema differs from format version 1 ({reader.schema.metadata})")
+            Problem(
+                str(path),
+                None,
+                f"schema differs from format version {FORMAT_VERSION} ({reader.schema.metadata})",
+            )
         )
         return None
     return reader
 
 
+def _row_name(values: dict) -> str:
+    return (
+        f"{values['key']} (dataset {values['dataset']}, subject {values['subject']}, "
+        f"camera {values['camera']}, frame {values['frame']})"
+    )
+
+
 def _check_image_row(path: Path, row_number: int, values: dict, decode: bool) -> list[Problem]:
+    if row_checksum(values["image"], values["mask"], values["valid"]) != values[CHECKSUM_COLUMN.name]:
+        message = "image, mask or valid bytes do not match the row's checksum (corrupted)"
+        return [Problem(str(path), row_number, f"{_row_name(values)}: {message}")]
     problems = [
         Problem(str(path), row_number, f"{values['key']}: {p}")
         for p in camera_problems(values["K"], values["w2c"], values["width"], values["height"])
@@ -105,6 +125,17 @@ def _check_image_row(path: Path, row_number: int, values: dict, decode: bool) ->
             problems.append(
                 Problem(str(path), row_number, f"{values['key']}: mask is {mask.shape}, declared {size}")
             )
+        else:
+            outside = int(np.count_nonzero(mask[~decode_valid(values["valid"], *size)]))
+            if outside:
+                problems.append(
+                    Problem(
+                        str(path),
+                        row_number,
+                        f"{_row_name(values)}: mask covers {outside} pixel(s) outside the source image "
+                        "(clear bits of `valid`: zero padding past the image's edge)",
+                    )
+                )
     except CodecError as error:
         problems.append(Problem(str(path), row_number, f"{values['key']}: mask does not decode ({error})"))
     return problems
@@ -154,13 +185,19 @@ def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = Fa
         problems += file_problems
         if not file_problems:
             intact.add(entry.file)
+    # A shard of the listed size whose hash differs is read anyway: the row checksums name the bad rows.
+    readable = intact | {
+        e.file
+        for e in manifest.shards
+        if (dataset_dir / e.file).is_file() and (dataset_dir / e.file).stat().st_size == e.bytes
+    }
 
     seen: dict[str, str] = {}
     total = sum(entry.rows for entry in manifest.shards)
     bar = tqdm(total=total, desc=f"validate {manifest.info.name}", unit="row", disable=not progress)
     for entry in dict.fromkeys(e.file for e in manifest.shards):
         path = dataset_dir / entry
-        if entry not in intact:
+        if entry not in readable:
             continue
         reader = _open_stream(path, IMAGE_SCHEMA, problems)
         if reader is None:
