@@ -158,7 +158,11 @@ class NormalizedDataset:
         position = self.position(key)
         shard, offset = int(self._shard_column[position]), int(self._offset_column[position])
         try:
-            return read_batch_at(self._map(shard), offset, IMAGE_SCHEMA)
+            batch = read_batch_at(self._map(shard), offset, IMAGE_SCHEMA)
+            # Offsets and lengths checked before any value is touched: a flipped byte there must not
+            # send a read past a buffer (a few µs for one row).
+            batch.validate(full=True)
+            return batch
         except (pa.ArrowException, OSError) as error:
             raise CorruptRowError(
                 f"{self.shard_path(shard)}: row {key!r} at byte {offset} cannot be read ({error}); the shard "
