@@ -82,7 +82,7 @@ def test_a_mask_on_padding_fails_validate_naming_the_row(tmp_path):
     bad, head, valid = _padded_dataset(tmp_path / "bad", mask_on_padding=True)
     (problem,) = [str(p) for p in validate_path(bad)]
     outside = int((head & ~valid).sum())
-    assert "images-00000.arrow row 0: padded/s000/000003/cam00/full" in problem
+    assert "images-00000.arrow row 0: 'padded/s000/000003/cam00/full'" in problem
     assert "subject s000, camera cam00, frame 3" in problem
     assert f"mask covers {outside} pixel(s) outside the source image" in problem
 

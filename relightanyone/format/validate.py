@@ -38,6 +38,7 @@ from relightanyone.format.schema import (
     SchemaError,
     camera_problems,
     row_checksum,
+    row_label,
 )
 from relightanyone.format.shards import PARTS_DIR, dataset_dirs
 from relightanyone.hashing import sha256_file
@@ -91,17 +92,10 @@ def _open_stream(
     return reader
 
 
-def _row_name(values: dict) -> str:
-    return (
-        f"{values['key']} (dataset {values['dataset']}, subject {values['subject']}, "
-        f"camera {values['camera']}, frame {values['frame']})"
-    )
-
-
 def _check_image_row(path: Path, row_number: int, values: dict, decode: bool) -> list[Problem]:
     if row_checksum(values["image"], values["mask"], values["valid"]) != values[CHECKSUM_COLUMN.name]:
         message = "image, mask or valid bytes do not match the row's checksum (corrupted)"
-        return [Problem(str(path), row_number, f"{_row_name(values)}: {message}")]
+        return [Problem(str(path), row_number, f"{row_label(values)}: {message}")]
     problems = [
         Problem(str(path), row_number, f"{values['key']}: {p}")
         for p in camera_problems(values["K"], values["w2c"], values["width"], values["height"])
@@ -132,7 +126,7 @@ def _check_image_row(path: Path, row_number: int, values: dict, decode: bool) ->
                     Problem(
                         str(path),
                         row_number,
-                        f"{_row_name(values)}: mask covers {outside} pixel(s) outside the source image "
+                        f"{row_label(values)}: mask covers {outside} pixel(s) outside the source image "
                         "(clear bits of `valid`: zero padding past the image's edge)",
                     )
                 )
