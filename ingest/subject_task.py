@@ -29,7 +29,7 @@ from relightanyone.ingest.steps import (
     crop_box_around_points,
     project_points,
     undistort_crop_resize,
-    valid_pixels,
+    undistort_crop_resize_valid,
 )
 from relightanyone.ingest.tracking import (
     AlignmentError,
@@ -129,8 +129,7 @@ def normalize_view(
     w2c = w2c_to_canonical(camera.w2c, alignment.canonical_from_native)
     # The crop is taken from the undistorted image, whose pinhole camera is K itself.
     box = crop_box_around_points(project_points(mesh.crop_points, camera.K, w2c), (width, height), margin)
-    out, K_new = undistort_crop_resize(image, camera.K, camera.dist, box, out_size)
-    valid = valid_pixels(camera.K, camera.dist, box, out_size, (width, height))
+    out, K_new, valid = undistort_crop_resize_valid(image, camera.K, camera.dist, box, out_size)
     mask = (mesh.silhouette.mask(K_new, w2c, out_size) & valid).astype(np.float32)
     if alpha is not None:
         if alpha.shape != (height, width):

@@ -6,10 +6,12 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from helpers.custom_capture import SIZE, ingest, make_capture
 
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.validate import validate_path
+from relightanyone.ingest.steps import undistort_crop_resize_valid
 
 
 def test_crops_past_the_image_edge_keep_masks_inside_the_valid_pixels(tmp_path):
@@ -45,3 +47,23 @@ def test_crops_past_the_image_edge_keep_masks_inside_the_valid_pixels(tmp_path):
         else:
             assert valid.all(), key
     assert validate_path(summary.path) == []
+
+
+@pytest.mark.parametrize(
+    "box, out_size, first_valid_column",
+    [
+        # Downscaled by 3 (sliced, then area-averaged): output column k averages source columns
+        # x0 + 3k .. x0 + 3k + 2, all inside from k = 5 (column 4 reaches source column -1).
+        ((-13, 5, 47, 65), 20, 5),
+        # Upscaled by 4 (bilinear at the output pixel centres, x = x0 + (k + 0.5) / 4 - 0.5): both taps
+        # inside from x >= 0, k = 10 (column 9 samples x = -0.125, a quarter of it padding).
+        ((-2, 10, 8, 20), 40, 10),
+    ],
+)
+def test_valid_pixels_follow_the_half_pixel_rule(box, out_size, first_valid_column):
+    K = np.array([[90.0, 0.0, 49.5], [0.0, 90.0, 39.5], [0.0, 0.0, 1.0]])
+    image = np.full((80, 100, 3), 0.5, np.float32)
+    out, _, valid = undistort_crop_resize_valid(image, K, None, box, out_size)
+    assert not valid[:, :first_valid_column].any() and valid[:, first_valid_column:].all()
+    np.testing.assert_allclose(out[valid], 0.5, rtol=1e-6)  # a valid pixel holds no padding
+    assert (out[~valid] < 0.5).all()
