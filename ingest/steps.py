@@ -242,20 +242,29 @@ def _undistort_crop_resize(
     side = x1 - x0
     height, width = img.shape[:2]
     inside = not dist.any() and x0 >= 1 and y0 >= 1 and x1 <= width - 1 and y1 <= height - 1
-    # An all-ones source: its resampling is each output pixel's weight on the source.
-    ones = [np.ones((height, width), np.float32)] if with_valid and not inside else []
+    coverage = with_valid and not inside
+    # A source of 255s through the same remap stays 255 exactly where every bilinear tap is inside:
+    # OpenCV's bilinear weights are multiples of 1/32, so any weight outside takes at least 8 codes off.
+    full = [np.full((height, width), 255, np.uint8)] if coverage else []
+    covered = None  # (out_size, out_size) float32: each output pixel's weight on the source
     # Integer images are resampled in float32 and rounded once, after the averaging.
     work = img if np.issubdtype(img.dtype, np.floating) else img.astype(np.float32)
     if side > out_size:
         fine = min(side, out_size * MAX_SUPERSAMPLING)
         if fine == side and not dist.any():
-            outs = [_shifted_crop(a, box) for a in (work, *ones)]
+            out = cv2.resize(_shifted_crop(work, box), (out_size, out_size), interpolation=cv2.INTER_AREA)
+            if coverage:
+                covered = _sliced_coverage(box, width, height, out_size)
         else:
-            outs = _resample([work, *ones], K, dist, crop_resize_intrinsics(K, box, fine), fine)
-        outs = [cv2.resize(a, (out_size, out_size), interpolation=cv2.INTER_AREA) for a in outs]
+            out, *taps = _resample([work, *full], K, dist, crop_resize_intrinsics(K, box, fine), fine)
+            out = cv2.resize(out, (out_size, out_size), interpolation=cv2.INTER_AREA)
+            if coverage:
+                inside_taps = (taps[0] == 255).astype(np.float32)
+                covered = cv2.resize(inside_taps, (out_size, out_size), interpolation=cv2.INTER_AREA)
     else:
-        outs = _resample([work, *ones], K, dist, K_new, out_size)
-    out = outs[0]
+        out, *taps = _resample([work, *full], K, dist, K_new, out_size)
+        if coverage:
+            covered = (taps[0] == 255).astype(np.float32)
     if out.ndim == 2 and img.ndim == 3:
         out = out[:, :, None]  # OpenCV drops a single channel axis
     if np.issubdtype(img.dtype, np.integer):
@@ -265,9 +274,26 @@ def _undistort_crop_resize(
         out = out.astype(img.dtype, copy=False)
     if not with_valid:
         return out, K_new, None
-    if inside:
+    if covered is None:
         return out, K_new, np.ones((out_size, out_size), dtype=bool)
-    return out, K_new, outs[1] >= 1.0 - PADDING_WEIGHT_TOLERANCE
+    return out, K_new, covered >= 1.0 - PADDING_WEIGHT_TOLERANCE
+
+
+def _sliced_coverage(box: Any, width: int, height: int, out_size: int) -> np.ndarray:
+    """``(out_size, out_size)`` float32: each output pixel's weight on the ``width × height`` source when
+    the square ``box`` is sliced and area-resized. The area filter's weights are products of a weight
+    along x and one along y, so two 1-D area resizes of the box's in-image indicator give it exactly."""
+    import cv2
+
+    x0, y0, x1, _ = (int(v) for v in box)
+    side = x1 - x0
+    per_axis = []
+    for start, limit in ((x0, width), (y0, height)):
+        pixels = np.arange(start, start + side)
+        indicator = ((pixels >= 0) & (pixels < limit)).astype(np.float32)[None]
+        per_axis.append(cv2.resize(indicator, (out_size, 1), interpolation=cv2.INTER_AREA)[0])
+    along_x, along_y = per_axis
+    return along_y[:, None] * along_x[None, :]
 
 
 def _pixel_rays(

@@ -11,7 +11,7 @@ from helpers.custom_capture import SIZE, ingest, make_capture
 
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.validate import validate_path
-from relightanyone.ingest.steps import undistort_crop_resize_valid
+from relightanyone.ingest.steps import undistort_crop_resize, undistort_crop_resize_valid
 
 
 def test_crops_past_the_image_edge_keep_masks_inside_the_valid_pixels(tmp_path):
@@ -67,3 +67,20 @@ def test_valid_pixels_follow_the_half_pixel_rule(box, out_size, first_valid_colu
     assert not valid[:, :first_valid_column].any() and valid[:, first_valid_column:].all()
     np.testing.assert_allclose(out[valid], 0.5, rtol=1e-6)  # a valid pixel holds no padding
     assert (out[~valid] < 0.5).all()
+
+
+@pytest.mark.parametrize("dist", [None, [0.05, -0.02, 0.001, 0.0, 0.0]], ids=["pinhole", "distorted"])
+def test_valid_pixels_are_where_an_all_ones_source_stays_one(dist):
+    # The definition, evaluated the slow way: the resampler run on an all-ones source (float32).
+    K = np.array([[90.0, 0.0, 49.5], [0.0, 90.0, 39.5], [0.0, 0.0, 1.0]])
+    ones = np.ones((80, 100), np.float32)
+    rng = np.random.default_rng(3)
+    for _ in range(12):
+        side = int(rng.integers(8, 90))
+        x0, y0 = int(rng.integers(-side + 2, 98)), int(rng.integers(-side + 2, 78))
+        box = (x0, y0, x0 + side, y0 + side)
+        out_size = int(rng.integers(6, 40))
+        coverage, _ = undistort_crop_resize(ones, K, dist, box, out_size)
+        _, _, valid = undistort_crop_resize_valid(ones, K, dist, box, out_size)
+        expected = coverage >= 1.0 - 1e-5
+        assert np.array_equal(valid, expected), (box, out_size, int((valid != expected).sum()))
