@@ -19,6 +19,7 @@ from relightanyone.format.examples import write_example_dataset
 from relightanyone.format.reader import CorruptRowError, NormalizedDataset
 from relightanyone.format.schema import (
     DatasetInfo,
+    ImageRow,
     Provenance,
     SchemaError,
     build_image_row,
@@ -180,7 +181,11 @@ def test_a_flipped_byte_never_returns_different_pixels(pristine, tmp_path):
                 continue
             _, true_image, true_mask = expected[key]
             assert np.array_equal(image, true_image) and np.array_equal(mask, true_mask), (position, key)
-            assert np.array_equal(row.valid_pixels(), expected[key][0].valid_pixels())
+            true_row = expected[key][0]
+            assert np.array_equal(row.valid_pixels(), true_row.valid_pixels())
+            # The checksum covers every column: cameras and names come back unchanged too.
+            assert np.array_equal(row.K, true_row.K) and np.array_equal(row.w2c, true_row.w2c), key
+            assert (row.crop, row.source, row.split) == (true_row.crop, true_row.source, true_row.split)
     assert caught >= 15  # most flips land in pixel bytes and are caught, the rest in bytes no pixel reads
 
 
@@ -209,3 +214,15 @@ def test_a_dataset_of_format_version_1_asks_for_a_re_ingest(pristine, tmp_path):
     (copy / "manifest.json").write_text(json.dumps({**manifest, "format_version": 1}))
     with pytest.raises(InputError, match="format version 1 was written by an earlier release.*re-ingest"):
         NormalizedDataset(copy)
+
+
+def test_the_checksum_covers_the_cameras_and_names_too():
+    row = _row("cam00", np.full((SIZE, SIZE, 3), 0.25, np.float32), np.ones((SIZE, SIZE), bool), None)
+    values = row.to_arrow_dict()
+    assert ImageRow.from_arrow_dict(values).key == row.key
+    for name, changed in (
+        ("K", [*values["K"][:2], values["K"][2] + 1e-9, *values["K"][3:]]),
+        ("split", "val"),
+    ):
+        with pytest.raises(SchemaError, match="do not match the row's checksum"):
+            ImageRow.from_arrow_dict({**values, name: changed})

@@ -86,7 +86,7 @@ def _rewrite_shard(dataset_dir, name, mutate):
     rows = pa.ipc.open_stream(pa.memory_map(str(dataset_dir / name))).read_all().to_pylist()
     mutate(rows)
     for row in rows:
-        row["checksum"] = row_checksum(row["image"], row["mask"], row["valid"])
+        row["checksum"] = row_checksum(row)
     writer = StreamFileWriter(dataset_dir / name, IMAGE_SCHEMA)
     for row in rows:
         writer.write(pa.RecordBatch.from_pylist([row], schema=IMAGE_SCHEMA))

@@ -93,8 +93,8 @@ def _open_stream(
 
 
 def _check_image_row(path: Path, row_number: int, values: dict, decode: bool) -> list[Problem]:
-    if row_checksum(values["image"], values["mask"], values["valid"]) != values[CHECKSUM_COLUMN.name]:
-        message = "image, mask or valid bytes do not match the row's checksum (corrupted)"
+    if row_checksum(values) != values[CHECKSUM_COLUMN.name]:
+        message = "the row's values do not match its checksum (corrupted)"
         return [Problem(str(path), row_number, f"{row_label(values)}: {message}")]
     problems = [
         Problem(str(path), row_number, f"{values['key']}: {p}")
@@ -199,6 +199,7 @@ def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = Fa
         row_number = 0
         try:
             for batch in reader:
+                batch.validate(full=True)  # offsets inside their buffers before any value is read
                 for values in batch.to_pylist():
                     key = values["key"]
                     if key in seen:
