@@ -3,12 +3,12 @@
 ``validate_path(DIR)`` accepts one dataset folder or a root holding several and returns a list of
 ``Problem``; an empty list means the data is sound. Checks: manifest present and of the current format
 version; every listed file present, of the listed size (truncation) and sha256 (any changed byte); no shard
-listed twice; no unlisted shard or leftover temporary file; shard schema; every row's image, mask and valid
-bytes matching its checksum (a changed shard is still read, so the corrupted rows are named); keys unique
-across shards and equal to the index; sane ``K`` and ``w2c``; images and masks decodable at the declared
-size, and no mask pixel outside the row's valid pixels (on the zero padding past the source image's edge);
-meshes, lights and quarantine readable, and the quarantine holding as many entries as the manifest's
-``quarantined``.
+listed twice; no unlisted shard or leftover temporary file; shard schema; every row's values matching its
+checksum (a changed shard is still read, so the corrupted rows are named); keys unique across shards and
+equal to the index; names safe as file names; sane ``K`` and ``w2c``; images and masks decodable at the
+declared size, and no mask pixel outside the row's valid pixels (on the zero padding past the source
+image's edge); meshes, lights and quarantine readable, and the quarantine holding as many entries as the
+manifest's ``quarantined``.
 """
 
 from __future__ import annotations
@@ -37,11 +37,13 @@ from relightanyone.format.schema import (
     QuarantineEntry,
     SchemaError,
     camera_problems,
+    name_problem,
     row_checksum,
     row_label,
 )
 from relightanyone.format.shards import PARTS_DIR, dataset_dirs
 from relightanyone.hashing import sha256_file
+from relightanyone.progress import progress_bar
 
 
 @dataclass(frozen=True)
@@ -92,14 +94,23 @@ def _open_stream(
     return reader
 
 
+def _name_problems(values: dict) -> list[str]:
+    """The row's names that are not one safe file name: each becomes a path component on export."""
+    problems = []
+    for what in ("dataset", "subject", "camera", "pattern"):
+        problem = name_problem(values[what])
+        if problem is not None:
+            problems.append(f"{what} name {values[what]!r} {problem}")
+    return problems
+
+
 def _check_image_row(path: Path, row_number: int, values: dict, decode: bool) -> list[Problem]:
     if row_checksum(values) != values[CHECKSUM_COLUMN.name]:
         message = "the row's values do not match its checksum (corrupted)"
         return [Problem(str(path), row_number, f"{row_label(values)}: {message}")]
-    problems = [
-        Problem(str(path), row_number, f"{values['key']}: {p}")
-        for p in camera_problems(values["K"], values["w2c"], values["width"], values["height"])
-    ]
+    found = _name_problems(values)
+    found += camera_problems(values["K"], values["w2c"], values["width"], values["height"])
+    problems = [Problem(str(path), row_number, f"{values['key']}: {p}") for p in found]
     if not decode:
         return problems
     size = (values["height"], values["width"])
@@ -148,8 +159,6 @@ def _check_table(path: Path, schema: pa.Schema, problems: list[Problem]) -> pa.T
 
 def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = False) -> list[Problem]:
     """All problems of one dataset folder."""
-    from tqdm import tqdm
-
     dataset_dir = Path(dataset_dir)
     try:
         manifest = load_manifest(dataset_dir)
@@ -188,7 +197,7 @@ def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = Fa
 
     seen: dict[str, str] = {}
     total = sum(entry.rows for entry in manifest.shards)
-    bar = tqdm(total=total, desc=f"validate {manifest.info.name}", unit="row", disable=not progress)
+    bar = progress_bar(total=total, desc=f"validate {manifest.info.name}", unit="row", disable=not progress)
     for entry in dict.fromkeys(e.file for e in manifest.shards):
         path = dataset_dir / entry
         if entry not in readable:
