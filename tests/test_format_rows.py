@@ -171,13 +171,15 @@ def test_a_flipped_byte_never_returns_different_pixels(pristine, tmp_path):
     positions = inside[np.linspace(0, inside.size - 1, 20).astype(int)]
     caught = 0
     for position in positions:
-        dataset = NormalizedDataset(_flipped_copy(pristine, tmp_path, int(position)))
+        copy = _flipped_copy(pristine, tmp_path, int(position))
+        dataset = NormalizedDataset(copy)
+        failed = []
         for key in dataset.keys:
             try:
                 row, image, mask = dataset.decoded(key)
             except InputError as error:
-                assert "images-00000.arrow" in str(error), error
-                caught += 1
+                assert "images-00000.arrow" in str(error) and key in str(error), error
+                failed.append(key)
                 continue
             _, true_image, true_mask = expected[key]
             assert np.array_equal(image, true_image) and np.array_equal(mask, true_mask), (position, key)
@@ -186,6 +188,13 @@ def test_a_flipped_byte_never_returns_different_pixels(pristine, tmp_path):
             # The checksum covers every column: cameras and names come back unchanged too.
             assert np.array_equal(row.K, true_row.K) and np.array_equal(row.w2c, true_row.w2c), key
             assert (row.crop, row.source, row.split) == (true_row.crop, true_row.source, true_row.split)
+        # validate names exactly the rows the reader refused, with their dataset, subject, camera and frame.
+        row_problems = [p.message for p in validate_path(copy) if p.row is not None]
+        named = {
+            key for key in dataset.keys for m in row_problems if f"'{key}' (dataset demo, subject s000" in m
+        }
+        assert named == set(failed), (position, named, failed)
+        caught += len(failed)
     assert caught >= 15  # most flips land in pixel bytes and are caught, the rest in bytes no pixel reads
 
 
