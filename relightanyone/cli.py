@@ -35,6 +35,7 @@ LAYER_CLI_MODULES = (
 COMMAND_ORDER = (
     "synth",
     "synth-preview",
+    "doctor",
     "ingest",
     "validate",
     "inspect",
