@@ -66,7 +66,7 @@ ON_FOREGROUND = 0.8  # share of the projected head (neck cut) that must lie on t
 # below it and FRAME_MARGIN under the subject's typical frame has the mesh of another frame or pose.
 SUSPECT_ON_FOREGROUND = 0.97
 FRAME_MARGIN = 0.03
-ALTERNATIVE_ON_FOREGROUND = 0.9  # an alternative (flip, another camera) explains the image above this
+ALTERNATIVE_AGREEMENT = 0.9  # an alternative (flip, another camera) explains the image from this agreement
 ALTERNATIVE_GAIN = 0.15  # ... and when it is this much better than the view as given
 MIN_MASK_PIXELS = 12  # fewer projected pixels than this: too small to judge
 BORDER_UNIFORM = 0.04  # border pixels within this of their median (relative to the image's peak): uniform
@@ -114,13 +114,18 @@ class CheckReport:
     def lines(self) -> list[str]:
         return [f.line() for f in self.findings]
 
-    def raise_for_stops(self, where: str) -> None:
-        """Raise :class:`ConventionError` listing every dataset-level finding (nothing was written)."""
-        if self.stops:
-            lines = "\n".join(f.line() for f in self.stops)
+    def raise_for_stops(self, where: str, listed: bool = False) -> None:
+        """Raise :class:`ConventionError` when a finding is dataset-level (nothing is written): its message
+        lists every such finding, or with ``listed`` (the command printed them) only counts them."""
+        if not self.stops:
+            return
+        if listed:
             raise ConventionError(
-                f"{where}: the convention checks stop the ingest, nothing written:\n{lines}"
+                f"{where}: {len(self.stops)} convention check finding(s) above stop the ingest, nothing "
+                "written (--accept-check NAME overrides a check on purpose)"
             )
+        lines = "\n".join(f.line() for f in self.stops)
+        raise ConventionError(f"{where}: the convention checks stop the ingest, nothing written:\n{lines}")
 
 
 def checked_names(accepted: Iterable[str]) -> tuple[str, ...]:
@@ -588,7 +593,7 @@ def check_view_image(
     }
     for what, flipped in flips.items():
         score = overlap_ratio(flipped, whole)
-        if score >= ALTERNATIVE_ON_FOREGROUND and score >= overlap + ALTERNATIVE_GAIN:
+        if score >= ALTERNATIVE_AGREEMENT and score >= overlap + ALTERNATIVE_GAIN:
             return ViewVerdict(
                 camera,
                 share,
@@ -603,7 +608,7 @@ def check_view_image(
         if other == camera or (w_o, h_o) != (width, height):
             continue
         score = on_foreground(foreground, silhouette.mask(subsampled_camera(K_o, stride), w2c_o, size)) or 0.0
-        if score >= ALTERNATIVE_ON_FOREGROUND and score >= share + ALTERNATIVE_GAIN:
+        if score >= ALTERNATIVE_AGREEMENT and score >= share + ALTERNATIVE_GAIN:
             if best is None or score > best[0]:
                 best = (score, other)
     if best is not None:
@@ -804,11 +809,14 @@ class ImageCheck:
                 released.append(view)
         return refusals, released
 
-    def passes(self, views: list[SourceView]):
-        """Every view of ``views``, then the held views that :meth:`decide` releases (judged once)."""
+    def passes(self, views: list[SourceView], before_release: Callable[[list], None] | None = None):
+        """Every view of ``views``, then the held views that :meth:`decide` releases (judged once), after
+        ``before_release`` of their images (the task's decoder prefetches video frames in one pass)."""
         yield from views
         self._refusals, released = self.decide()
         self._released = {view_item(v) for v in released}
+        if released and before_release is not None:
+            before_release([v.image for v in released])
         yield from released
 
     def refusals(self) -> list[tuple[str, str, str]]:

@@ -149,7 +149,7 @@ def _adapter_command(spec: AdapterSpec, doctor: bool = False) -> click.Command:
         checks = run_checks(prepared, tuple(accepted_checks), image_frames)
         for line in check_lines(checks):
             click.echo(line)
-        checks.raise_for_stops(str(src))
+        checks.raise_for_stops(str(src), listed=True)
         if doctor or dry_run:
             click.echo("dry run: nothing written" if dry_run else "doctor: nothing written")
             return

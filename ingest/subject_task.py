@@ -187,7 +187,7 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
         decoder.prefetch_videos(v.image for v in views if v.frame in meshes)
         seen: set[str] = set()
         image_check = ImageCheck(task, {f: m.silhouette for f, m in meshes.items()}, settings.accepted_checks)
-        for view in image_check.passes(views):
+        for view in image_check.passes(views, decoder.prefetch_videos):
             item = f"{plan.subject}/{view.frame:06d}/{view.camera.name}/{view.pattern}"
             if view.frame not in meshes:
                 refuse(part, item, view.source, task.failures.get(view.frame, "no tracked mesh"), "align")

@@ -21,7 +21,7 @@ from helpers.small_worlds import make_world, reduced_preset
 from relightanyone.align.geometry import similarity, transform_points
 from relightanyone.cli import cli
 from relightanyone.format.reader import NormalizedDataset
-from relightanyone.ingest.checks import CameraCase, camera_problem, explain_cameras
+from relightanyone.ingest.checks import CameraCase, camera_problem, explain_cameras, mismatched_frames
 from relightanyone.render.mesh import read_obj
 from relightanyone.synth.presets import DatasetSize
 from relightanyone.synth.template import make_template, write_obj
@@ -199,6 +199,28 @@ def test_mesh_of_another_pose_quarantines_the_frame(capture, tmp_path):
     refused = quarantine(tmp_path / "out")
     assert {e["item"] for e in refused} == {f"s1/000001/c{k}/full" for k in range(5)}
     assert all("mesh of another frame or head pose" in e["reason"] for e in refused)
+
+
+def test_view_partly_off_its_foreground_in_a_good_frame_is_written_after_all(capture, tmp_path):
+    """A view held back as doubtful (part of the head dark, as under black hair) is released when its
+    frame agrees with the subject's other frames."""
+    path = capture / "images" / "s1" / "000001" / "c2.png"
+    image = cv2.imread(str(path))
+    rows = np.flatnonzero(image.max(axis=(1, 2)) > 0)
+    image[rows[0] : rows[0] + (rows[-1] - rows[0]) // 8] = 0
+    cv2.imwrite(str(path), image)
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    assert quarantine(tmp_path / "out") == []
+    assert len(NormalizedDataset(tmp_path / "out" / "custom")) == 15
+
+
+def test_mismatched_frames_need_other_frames_to_compare_with():
+    shares = {0: [1.0, 0.99, 1.0], 1: [0.9, 0.93, 0.91], 2: [1.0, 0.98]}
+    bad, baseline = mismatched_frames(shares)
+    assert set(bad) == {1} and baseline == pytest.approx(0.99)
+    assert mismatched_frames({1: [0.9, 0.93, 0.91]})[0] == {}
+    assert mismatched_frames({0: [0.95, 0.96], 1: [0.95, 0.94]})[0] == {}
 
 
 def test_accepted_check_is_not_applied_and_is_recorded_in_the_manifest(capture, tmp_path):
