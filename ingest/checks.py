@@ -21,6 +21,7 @@ import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from relightanyone.align.geometry import (
@@ -31,7 +32,6 @@ from relightanyone.align.geometry import (
 )
 from relightanyone.errors import InputError
 from relightanyone.ingest.records import SourceView
-from relightanyone.ingest.steps import MeshSilhouette
 
 # name -> what it checks (docs/ingest.md lists each with its threshold and the causes it names).
 CHECKS: dict[str, str] = {
@@ -56,11 +56,12 @@ PROJECTED_EXTENT = (0.03, 4.0)  # projected head extent / the image's larger sid
 SUBJECT_SHARE = 0.5  # a failure on this share of a subject's views or frames is a dataset-level mistake
 EXPLAINED_SHARE = 0.9  # an alternative explains a failure when this share of the views then passes
 HEAD_POINTS = 400  # vertices used for the camera checks (evenly subsampled)
+HULL_POINTS = 150  # vertices whose convex hull outlines the whole mesh for the image check
 
 # The image check (silhouette): the image is subsampled to at most SILHOUETTE_SIDE pixels on its larger
 # side; the background is the colour of the image's border away from the projected head, used only when
 # that border is uniform (black, a backdrop); otherwise the check cannot tell and says nothing.
-SILHOUETTE_SIDE = 96
+SILHOUETTE_SIDE = 64
 ON_FOREGROUND = 0.8  # share of the projected head (neck cut) that must lie on the foreground
 # Below this a view is set aside until the subject's frames can be compared: a frame whose median share is
 # below it and FRAME_MARGIN under the subject's typical frame has the mesh of another frame or pose.
@@ -68,9 +69,13 @@ SUSPECT_ON_FOREGROUND = 0.97
 FRAME_MARGIN = 0.03
 ALTERNATIVE_AGREEMENT = 0.9  # an alternative (flip, another camera) explains the image from this agreement
 ALTERNATIVE_GAIN = 0.15  # ... and when it is this much better than the view as given
+FLIP_OVERLAP = 0.8  # a flipped image explains a view when the mesh's outline overlaps its foreground so
 MIN_MASK_PIXELS = 12  # fewer projected pixels than this: too small to judge
 BORDER_UNIFORM = 0.04  # border pixels within this of their median (relative to the image's peak): uniform
-FOREGROUND_CONTRAST = 0.08  # foreground: farther than this from the background (relative to the peak)
+# Foreground: farther from the background than this share of the image's peak, and than this many times
+# the border's own spread (its noise), whichever is more (dark skin and hair are a few % of the peak).
+FOREGROUND_CONTRAST = 0.01
+BACKGROUND_NOISE_FACTOR = 4.0
 
 
 class ConventionError(InputError):
@@ -486,39 +491,50 @@ def head_in_native(tracked: np.ndarray, tracker_from_native: np.ndarray) -> np.n
 
 
 # ----------------------------------------------------------------------------------------- image check
-@dataclass(frozen=True)
-class ImageEvidence:
-    """What an image shows against the projected head: ``on_foreground`` is the share of the projected
-    head (neck cut) on the image's foreground; None when the background is not uniform (cannot tell)."""
-
-    on_foreground: float | None
-    foreground: np.ndarray | None = field(default=None, repr=False)  # (h, w) bool
-    stride: int = 1
-
-
 def image_foreground(image: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
     """``(h, w)`` bool foreground of a subsampled ``image (h, w, 3)`` against the colour of its border away
     from ``mask (h, w)`` (the projected head, dilated); None when that border is not uniform."""
     h, w = mask.shape
     ring = np.zeros((h, w), dtype=bool)
     ring[:2], ring[-2:], ring[:, :2], ring[:, -2:] = True, True, True, True
-    near = _dilate(mask, 3)
+    near = cv2.dilate(mask.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
     border = image[ring & ~near]
     if len(border) < 16:
         return None
-    peak = float(np.percentile(image.max(axis=2), 99)) or 1.0
-    background = np.median(border, axis=0)
+    peak = quantile(channel_max(image).ravel(), 0.99)
+    background = np.median(border, axis=0).astype(np.float32)
     spread = np.abs(border - background).max(axis=1)
-    if float(np.percentile(spread, 80)) > BORDER_UNIFORM * peak:
+    noise = quantile(spread, 0.8)
+    if peak <= 0 or noise > BORDER_UNIFORM * peak:
         return None
-    return np.abs(image - background).max(axis=2) > FOREGROUND_CONTRAST * peak
+    threshold = max(FOREGROUND_CONTRAST * peak, BACKGROUND_NOISE_FACTOR * noise)
+    return channel_max(cv2.absdiff(image, np.full_like(image, background))) > threshold
 
 
-def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
-    import cv2  # deferred like the other image steps: only the image check needs it here
+def channel_max(image: np.ndarray) -> np.ndarray:
+    """``(h, w)`` the largest of the three channels of ``image (h, w, 3)`` (``max(axis=2)`` is several times
+    slower on small images)."""
+    return np.maximum(np.maximum(image[..., 0], image[..., 1]), image[..., 2])
 
-    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
-    return cv2.dilate(mask.astype(np.uint8), kernel).astype(bool)
+
+def quantile(values: np.ndarray, q: float) -> float:
+    """The ``q`` quantile of ``values (N,)`` (the nearest rank below; cheaper than ``np.percentile``)."""
+    rank = int(q * (len(values) - 1))
+    return float(np.partition(values, rank)[rank])
+
+
+def hull_mask(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``(h, w)`` bool: the convex hull of ``points (N, 3)`` (those in front of the camera) projected by
+    ``K``, ``w2c``; size ``(w, h)``. The outline of a whole head and neck, for comparing shapes."""
+    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+    cam = cam[cam[:, 2] > 0]
+    mask = np.zeros((size[1], size[0]), np.uint8)
+    if len(cam) >= 3:
+        pixels = cam[:, :2] / cam[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
+        pixels = np.clip(pixels, -4 * max(size), 4 * max(size))
+        hull = cv2.convexHull(np.round(pixels).astype(np.int32))
+        cv2.fillConvexPoly(mask, hull, 1)
+    return mask.astype(bool)
 
 
 def subsampled_camera(K: np.ndarray, stride: int) -> np.ndarray:
@@ -547,6 +563,20 @@ def on_foreground(foreground: np.ndarray, mask: np.ndarray) -> float | None:
 
 
 @dataclass(frozen=True)
+class FrameShape:
+    """A frame's tracked mesh as the image check sees it: the exact ``silhouette`` (a
+    :class:`~relightanyone.ingest.steps.MeshSilhouette`, neck cut) and, for a cheap outline, a few vertices
+    of the whole mesh ``(N, 3)``; canonical space."""
+
+    silhouette: object
+    whole: np.ndarray
+
+    @classmethod
+    def of(cls, silhouette) -> FrameShape:
+        return cls(silhouette, subsample(silhouette.vertices, HULL_POINTS))
+
+
+@dataclass(frozen=True)
 class ViewVerdict:
     """The image check of one view: ``share`` of the projected head on the foreground (None: the
     background is not uniform enough to tell); ``problem`` the reason it fails, ``explained`` when a flip or
@@ -564,11 +594,11 @@ def check_view_image(
     image: np.ndarray,
     K: np.ndarray,
     w2c: np.ndarray,
-    silhouette,
+    shape: FrameShape,
     others: dict[str, tuple[np.ndarray, np.ndarray, int, int]],
 ) -> ViewVerdict:
     """Does the head projected by ``K (3, 3)``, ``w2c (4, 4)`` (canonical) lie on the foreground of ``image
-    (H, W, 3)``? ``silhouette`` is the frame's :class:`~relightanyone.ingest.steps.MeshSilhouette`;
+    (H, W, 3)``? ``shape`` is the frame's mesh (:class:`FrameShape`);
     ``others`` the frame's other cameras ``name -> (K, w2c, width, height)``, tried when the view fails
     (its image may be theirs)."""
     height, width = image.shape[:2]
@@ -576,14 +606,18 @@ def check_view_image(
     small = np.ascontiguousarray(image[::stride, ::stride, :3], dtype=np.float32)
     size = (small.shape[1], small.shape[0])
     K_small = subsampled_camera(K, stride)
-    mask = silhouette.mask(K_small, w2c, size)
-    foreground = image_foreground(small, mask)
-    share = None if foreground is None else on_foreground(foreground, mask)
+    # The whole mesh's outline (neck included; the convex hull of a few vertices) keeps the background
+    # estimate off the head and is what a flip is judged by; the share is the exact silhouette's.
+    silhouette = shape.silhouette
+    whole = hull_mask(shape.whole, K_small, w2c, size)
+    foreground = image_foreground(small, whole)
+    if foreground is None:
+        return ViewVerdict(camera, None)
+    share = on_foreground(foreground, silhouette.mask(K_small, w2c, size))
     if share is None:
         return ViewVerdict(camera, share)
-    # The whole mesh (neck included) against the foreground, as given and flipped: a flip shows as a much
+    # The whole mesh's outline against the foreground, as given and flipped: a flip shows as a much
     # better overlap, even where the neck-cut head still lies on the foreground.
-    whole = MeshSilhouette(silhouette.vertices, silhouette.faces).mask(K_small, w2c, size)
     overlap = overlap_ratio(foreground, whole)
     stated = f"{share:.0%} of the projected head on the image's foreground, overlap {overlap:.0%}"
     flips = {
@@ -593,7 +627,7 @@ def check_view_image(
     }
     for what, flipped in flips.items():
         score = overlap_ratio(flipped, whole)
-        if score >= ALTERNATIVE_AGREEMENT and score >= overlap + ALTERNATIVE_GAIN:
+        if score >= FLIP_OVERLAP and score >= overlap + ALTERNATIVE_GAIN:
             return ViewVerdict(
                 camera,
                 share,
@@ -733,7 +767,8 @@ class ImageCheck:
     """
 
     def __init__(self, task, silhouettes: dict, accepted: tuple[str, ...] = ()):
-        self.task, self.silhouettes = task, silhouettes
+        self.task = task
+        self.shapes = {frame: FrameShape.of(silhouette) for frame, silhouette in silhouettes.items()}
         self.enabled = "silhouette" not in accepted
         self._views: dict[int, list[SourceView]] = {}
         for view in task.plan.views:
@@ -747,7 +782,7 @@ class ImageCheck:
 
     def holds(self, view: SourceView, item: str, image: np.ndarray) -> bool:
         """Judge ``image (H, W, 3)`` of ``view``; True when it is held back."""
-        if not self.enabled or view.pattern != "full" or view.frame not in self.silhouettes:
+        if not self.enabled or view.pattern != "full" or view.frame not in self.shapes:
             return False
         if item in self._released:
             return False
@@ -761,7 +796,7 @@ class ImageCheck:
         if camera is None or image.shape[:2] != (camera[3], camera[2]):
             return False  # not rigid or the wrong size: other steps refuse it with that reason
         verdict = check_view_image(
-            view.camera.name, image, camera[0], camera[1], self.silhouettes[view.frame], cameras
+            view.camera.name, image, camera[0], camera[1], self.shapes[view.frame], cameras
         )
         if verdict.share is None:
             return False
