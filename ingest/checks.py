@@ -28,7 +28,6 @@ from relightanyone.align.geometry import (
     decompose_similarity,
     invert_similarity,
     transform_points,
-    w2c_to_canonical,
 )
 from relightanyone.errors import InputError
 from relightanyone.ingest.records import SourceView
@@ -55,13 +54,13 @@ PROJECTED_INSIDE = 0.5  # share of the projected head's bounding box that must l
 PROJECTED_EXTENT = (0.03, 4.0)  # projected head extent / the image's larger side
 SUBJECT_SHARE = 0.5  # a failure on this share of a subject's views or frames is a dataset-level mistake
 EXPLAINED_SHARE = 0.9  # an alternative explains a failure when this share of the views then passes
-HEAD_POINTS = 400  # vertices used for the camera checks (evenly subsampled)
+HEAD_POINTS = 200  # vertices used for the camera checks (evenly subsampled)
 HULL_POINTS = 150  # vertices whose convex hull outlines the whole mesh for the image check
 
 # The image check (silhouette): the image is subsampled to at most SILHOUETTE_SIDE pixels on its larger
 # side; the background is the colour of the image's border away from the projected head, used only when
 # that border is uniform (black, a backdrop); otherwise the check cannot tell and says nothing.
-SILHOUETTE_SIDE = 64
+SILHOUETTE_SIDE = 48
 ON_FOREGROUND = 0.8  # share of the projected head (neck cut) that must lie on the foreground
 # Below this a view is set aside until the subject's frames can be compared: a frame whose median share is
 # below it and FRAME_MARGIN under the subject's typical frame has the mesh of another frame or pose.
@@ -502,7 +501,8 @@ def image_foreground(image: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
     if len(border) < 16:
         return None
     peak = quantile(channel_max(image).ravel(), 0.99)
-    background = np.median(border, axis=0).astype(np.float32)
+    middle = (len(border) - 1) // 2
+    background = np.partition(border, middle, axis=0)[middle].astype(np.float32)  # per-channel median
     spread = np.abs(border - background).max(axis=1)
     noise = quantile(spread, 0.8)
     if peak <= 0 or noise > BORDER_UNIFORM * peak:
@@ -625,6 +625,8 @@ def check_view_image(
         "flipped vertically": foreground[::-1],
         "mirrored left-right": foreground[:, ::-1],
     }
+    if overlap > 1.0 - ALTERNATIVE_GAIN:
+        flips = {}  # no flip can do better by ALTERNATIVE_GAIN
     for what, flipped in flips.items():
         score = overlap_ratio(flipped, whole)
         if score >= FLIP_OVERLAP and score >= overlap + ALTERNATIVE_GAIN:
@@ -678,21 +680,21 @@ def view_item(view: SourceView) -> str:
 def frame_cameras(
     views: Iterable[SourceView], canonical_from_native: np.ndarray
 ) -> dict[str, tuple[np.ndarray, np.ndarray, int, int]]:
-    """camera -> ``(K, w2c canonical, width, height)`` of one frame's views (rigid cameras only)."""
+    """camera -> ``(K, w2c, width, height)`` of one frame's views, ``w2c`` from canonical space to camera
+    coordinates in native units, ``w2c_native · canonical_from_native⁻¹``: the pixels of
+    :func:`~relightanyone.align.geometry.w2c_to_canonical`, which also rescales the camera to metres and
+    re-orthonormalises it for storage (a projection needs neither)."""
+    native_from_canonical = invert_similarity(canonical_from_native)
     out = {}
     for view in views:
-        if view.camera.name in out:
-            continue
-        try:
-            w2c = w2c_to_canonical(view.camera.w2c, canonical_from_native)
-        except ValueError:  # not rigid: the rotation check names it
-            continue
-        out[view.camera.name] = (
-            np.asarray(view.camera.K, np.float64),
-            w2c,
-            view.camera.width,
-            view.camera.height,
-        )
+        if view.camera.name not in out:
+            w2c = np.asarray(view.camera.w2c, np.float64) @ native_from_canonical
+            out[view.camera.name] = (
+                np.asarray(view.camera.K, np.float64),
+                w2c,
+                view.camera.width,
+                view.camera.height,
+            )
     return out
 
 
@@ -702,9 +704,9 @@ def check_subject(task, template, accepted: tuple[str, ...]) -> list[Finding]:
     ``template`` its :class:`~relightanyone.ingest.tracking.Template`."""
     plan = task.plan
     head_mask = ~template.neck_vertices if (~template.neck_vertices).sum() >= 3 else slice(None)
-    views_by_key: dict[tuple[int, str], list[SourceView]] = {}
+    views_by_frame: dict[int, dict[str, list[SourceView]]] = {}
     for view in plan.views:
-        views_by_key.setdefault((view.frame, view.camera.name), []).append(view)
+        views_by_frame.setdefault(view.frame, {}).setdefault(view.camera.name, []).append(view)
     cases, extents, centres, heads, residuals = [], [], [], [], {}
     items_by_frame: dict[int, list[str]] = {}
     tracked_extent = 0.0
@@ -714,14 +716,12 @@ def check_subject(task, template, accepted: tuple[str, ...]) -> list[Finding]:
             continue
         head = tracked[head_mask]
         canonical = transform_points(alignment.canonical_from_tracker, head)
-        native = subsample(head_in_native(head, alignment.tracker_from_native))
+        native = head_in_native(subsample(head), alignment.tracker_from_native)
         extents.append(extent(canonical))
         tracked_extent = extent(head)
         residuals[frame] = alignment.fit_rms_mm
         native_to_m = decompose_similarity(alignment.canonical_from_native)[0]
-        for (view_frame, camera), views in views_by_key.items():
-            if view_frame != frame:
-                continue
+        for camera, views in views_by_frame.get(frame, {}).items():
             items = tuple(view_item(v) for v in views)
             items_by_frame.setdefault(frame, []).extend(items)
             cam = views[0].camera
