@@ -336,12 +336,13 @@ def camera_findings(cases: list[CameraCase], subject: str, accepted: tuple[str, 
         failed = failures.get(name, [])
         if failed:
             cameras = sorted({c.camera for c, _ in failed})
+            cause = explain_cameras([c for c, _ in failed]) or "check their K and extrinsics"
             findings.append(
                 Finding(
                     name,
                     "view",
                     f"subject {subject}, cameras {_names(cameras)}: camera {failed[0][0].camera}: "
-                    f"{failed[0][1]}; the other cameras pass, so these cameras' calibration is wrong",
+                    f"{failed[0][1]}; the other cameras pass, so these cameras' calibration is wrong: {cause}",
                     tuple(item for c, _ in failed for item in c.items),
                 )
             )

@@ -157,6 +157,19 @@ def test_dataset_level_mistake_stops_before_writing_naming_the_cause(capture, tm
     assert not (tmp_path / "out" / "custom").exists()
 
 
+def test_one_camera_given_camera_to_world_is_quarantined_naming_the_cause(capture, tmp_path):
+    path = capture / "cameras.json"
+    document = json.loads(path.read_text())
+    document["cameras"]["c3"]["w2c"] = np.linalg.inv(np.array(document["cameras"]["c3"]["w2c"])).tolist()
+    path.write_text(json.dumps(document))
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    refused = quarantine(tmp_path / "out")
+    assert {e["item"] for e in refused} == {f"s1/00000{f}/c3/full" for f in range(3)}
+    assert all("camera-to-world" in e["reason"] and e["stage"] == "check" for e in refused)
+    assert len(NormalizedDataset(tmp_path / "out" / "custom")) == 12
+
+
 def test_swapped_images_quarantine_both_views_naming_the_pair(capture, tmp_path):
     for frame in ("000000", "000001"):
         folder = capture / "images" / "s1" / frame
