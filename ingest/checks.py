@@ -597,11 +597,13 @@ def check_view_image(
     w2c: np.ndarray,
     shape: FrameShape,
     others: dict[str, tuple[np.ndarray, np.ndarray, int, int]],
+    conventions: Callable[[], list[tuple[str, str, np.ndarray, np.ndarray]]] | None = None,
 ) -> ViewVerdict:
     """Does the head projected by ``K (3, 3)``, ``w2c (4, 4)`` (canonical) lie on the foreground of ``image
     (H, W, 3)``? ``shape`` is the frame's mesh (:class:`FrameShape`);
     ``others`` the frame's other cameras ``name -> (K, w2c, width, height)``, tried when the view fails
-    (its image may be theirs)."""
+    (its image may be theirs), after ``conventions()``: this camera read with each of
+    :data:`CAMERA_ALTERNATIVES`, ``(meaning, fix, K, w2c)``."""
     height, width = image.shape[:2]
     stride = silhouette_stride(width, height)
     small = np.ascontiguousarray(image[::stride, ::stride, :3], dtype=np.float32)
@@ -640,14 +642,36 @@ def check_view_image(
             )
     if share >= ON_FOREGROUND:
         return ViewVerdict(camera, share)
+
+    def agreement(K_alt: np.ndarray, w2c_alt: np.ndarray) -> tuple[float, float]:
+        """(share, outline overlap) of the head seen by another camera on this image's foreground."""
+        K_alt = subsampled_camera(K_alt, stride)
+        alt_share = on_foreground(foreground, silhouette.mask(K_alt, w2c_alt, size)) or 0.0
+        return alt_share, overlap_ratio(foreground, hull_mask(shape.whole, K_alt, w2c_alt, size))
+
+    def explains(scores: tuple[float, float]) -> bool:
+        alt_share, alt_overlap = scores
+        return alt_share >= ALTERNATIVE_AGREEMENT and alt_overlap >= max(
+            FLIP_OVERLAP, overlap + ALTERNATIVE_GAIN
+        )
+
+    for meaning, fix, K_alt, w2c_alt in conventions() if conventions is not None else ():
+        scores = agreement(K_alt, w2c_alt)
+        if explains(scores):
+            return ViewVerdict(
+                camera,
+                share,
+                f"camera {camera}: {stated}; {meaning} (changed so, {scores[0]:.0%} of it on the foreground) "
+                f"— {fix}",
+                True,
+            )
     best: tuple[float, str] | None = None
     for other, (K_o, w2c_o, w_o, h_o) in others.items():
         if other == camera or (w_o, h_o) != (width, height):
             continue
-        score = on_foreground(foreground, silhouette.mask(subsampled_camera(K_o, stride), w2c_o, size)) or 0.0
-        if score >= ALTERNATIVE_AGREEMENT and score >= share + ALTERNATIVE_GAIN:
-            if best is None or score > best[0]:
-                best = (score, other)
+        scores = agreement(K_o, w2c_o)
+        if explains(scores) and (best is None or scores[0] > best[0]):
+            best = (scores[0], other)
     if best is not None:
         return ViewVerdict(
             camera,
@@ -796,8 +820,26 @@ class ImageCheck:
         camera = cameras.get(view.camera.name)
         if camera is None or image.shape[:2] != (camera[3], camera[2]):
             return False  # not rigid or the wrong size: other steps refuse it with that reason
+
+        def conventions() -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+            """This camera read with each alternative convention, as canonical cameras (only on failure)."""
+            native_from_canonical = invert_similarity(self.task.alignments[view.frame].canonical_from_native)
+            K, w2c, width, height = (
+                view.camera.K,
+                np.asarray(view.camera.w2c),
+                view.camera.width,
+                view.camera.height,
+            )
+            changed = [
+                (meaning, fix, *change(K, w2c, width, height)) for meaning, fix, change in CAMERA_ALTERNATIVES
+            ]
+            return [
+                (meaning, fix, K_alt, w2c_alt @ native_from_canonical)
+                for meaning, fix, K_alt, w2c_alt in changed
+            ]
+
         verdict = check_view_image(
-            view.camera.name, image, camera[0], camera[1], self.shapes[view.frame], cameras
+            view.camera.name, image, camera[0], camera[1], self.shapes[view.frame], cameras, conventions
         )
         if verdict.share is None:
             return False
