@@ -52,7 +52,19 @@ def sensor_size(value: str | None) -> tuple[int, int] | None:
     return width, height
 
 
-def _adapter_command(spec: AdapterSpec) -> click.Command:
+def accept_check_option() -> click.Option:
+    return click.option(
+        "--accept-check",
+        "accepted_checks",
+        multiple=True,
+        metavar="NAME",
+        help="Do not apply this convention check (repeatable; the names are listed in docs/ingest.md, "
+        "Checks); recorded in the manifest.",
+    )
+
+
+def _adapter_command(spec: AdapterSpec, doctor: bool = False) -> click.Command:
+    """``ingest <layout>``, or with ``doctor`` ``doctor <layout>`` (same arguments, only the checks)."""
     command_name, tracking_required = spec.command, spec.tracking_required
 
     @click.command(command_name)
@@ -64,7 +76,9 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         help="VHAP export holding <subject>/transforms.json and meshes/"
         + ("" if tracking_required else " (default: the capture's own meshes/)"),
     )
-    @out_option("Root folder of normalized datasets; the dataset is written to OUT/<name>.")
+    @out_option(
+        "Root folder of normalized datasets; the dataset is written to OUT/<name>.", required=not doctor
+    )
     @preset_option("paper", "Crop size: tiny/demo 128, small 512, paper 1024.")
     @click.option("--name", default=None, help="Name of the normalized dataset (default: the adapter's).")
     @click.option(
@@ -118,6 +132,7 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
     @workers_option()
     @executor_option()
     @dry_run_option("Print what was found and the estimated size, write nothing.")
+    @accept_check_option()
     def command(
         src,
         tracking,
@@ -138,13 +153,16 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         workers,
         executor,
         dry_run,
+        accepted_checks,
     ):
         from relightanyone.ingest.runner import (
+            check_lines,
             found_lines,
             ingest_dataset,
             ingest_executor,
             nothing_to_write,
             prepare,
+            run_checks,
         )
         from relightanyone.ingest.tracking import TrackingOptions  # imports torch through the calibration
 
@@ -161,7 +179,7 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
             sensor_size=sensor_size,
         )
         adapter.detect(src)
-        if not dry_run:
+        if not (dry_run or doctor):
             # After the cheap layout check (a wrong SRC fails at once, with no pool to wait for), so the
             # workers' imports overlap the planning.
             ingest_executor(workers, executor).warm()
@@ -181,11 +199,26 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         empty = nothing_to_write(plan, prepared[2])
         if empty:
             raise InputError(empty)
-        if dry_run:
-            click.echo("dry run: nothing written")
+        # doctor judges every image, a dry run the first frame of each subject, the ingest each image it
+        # writes (inside its tasks).
+        image_frames = None if doctor else 1 if dry_run else 0
+        checks = run_checks(prepared, tuple(accepted_checks), image_frames)
+        for line in check_lines(checks):
+            click.echo(line)
+        checks.raise_for_stops(str(src), listed=True)
+        if doctor or dry_run:
+            click.echo("dry run: nothing written" if dry_run else "doctor: nothing written")
             return
         summary = ingest_dataset(
-            plan, tracking, out, preset, workers=workers, executor=executor, progress=True, prepared=prepared
+            plan,
+            tracking,
+            out,
+            preset,
+            workers=workers,
+            executor=executor,
+            progress=True,
+            prepared=prepared,
+            checks=checks,
         )
         for line in summary.lines():
             click.echo(line)
@@ -195,6 +228,11 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         f"Normalize a {command_name} capture at SRC into OUT/<name> (decode, colour calibration, canonical "
         "cameras, undistort, crop around the tracked mesh, mask, shards). Re-running resumes an interrupted run."
     )
+    if doctor:
+        command.help = (
+            f"Check a {command_name} capture at SRC for convention mistakes (cameras, units, images) with the "
+            "arguments ingest takes, reading every image once; write nothing. Exits 1 on a dataset-level mistake."
+        )
     return command
 
 
@@ -203,7 +241,13 @@ def ingest_group() -> None:
     """Normalize native capture datasets into the normalized format."""
 
 
+@click.group("doctor")
+def doctor_group() -> None:
+    """Check a native capture for camera, unit and image mistakes before ingesting it."""
+
+
 for _spec in ADAPTERS.values():
     ingest_group.add_command(_adapter_command(_spec))
+    doctor_group.add_command(_adapter_command(_spec, doctor=True))
 
-COMMANDS: dict[str, click.Command] = {"ingest": ingest_group}
+COMMANDS: dict[str, click.Command] = {"ingest": ingest_group, "doctor": doctor_group}

@@ -23,7 +23,7 @@ import json
 import re
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 
@@ -52,8 +52,9 @@ from relightanyone.format.schema import (
     fingerprint_config,
 )
 from relightanyone.format.shards import ShardWriter
+from relightanyone.ingest.checks import CheckReport, check_tasks, view_item
 from relightanyone.ingest.records import DatasetPlan, SubjectPlan
-from relightanyone.ingest.subject_task import IngestSettings, SubjectTask, run_subject_task
+from relightanyone.ingest.subject_task import IngestSettings, SubjectTask, check_images, run_subject_task
 from relightanyone.ingest.tracking import (
     NECK_MASK_NAMES,
     TRANSFORMS_NAME,
@@ -413,6 +414,41 @@ def _lights(plan: DatasetPlan, tasks: list[SubjectTask]) -> tuple[list, dict]:
     return rows, {"placement": "mean head pose over all frames", "max_frame_deviation_mm": round(spread, 3)}
 
 
+def run_checks(
+    prepared: tuple[IngestSettings, Template, list[SubjectTask]],
+    accepted_checks: tuple[str, ...] = (),
+    image_frames: int | None = 0,
+) -> CheckReport:
+    """The convention checks (:mod:`.checks`) on what :func:`prepare` returned: every check that needs no
+    pixel, then the image check on the first ``image_frames`` aligned frames of each subject (None: every
+    frame; 0: none, since an ingest's tasks judge each image as they write it)."""
+    settings, template, tasks = prepared
+    report = check_tasks(tasks, template, accepted_checks)
+    if image_frames != 0 and not report.stops:
+        settings = replace(settings, accepted_checks=report.accepted)
+        for task in tasks:
+            report.findings += check_images(settings, task, image_frames)
+    return report
+
+
+def check_lines(report: CheckReport) -> list[str]:
+    """The convention checks' findings as printed before writing: one line each, or that all passed."""
+    accepted = f" (not applied: {', '.join(report.accepted)})" if report.accepted else ""
+    if not report.findings:
+        return [f"  convention checks: all passed{accepted}"]
+    return [f"  convention checks: {len(report.findings)} findings{accepted}"] + [
+        f"    {line}" for line in report.lines()
+    ]
+
+
+def refuse_checked_views(tasks: list[SubjectTask], checks: CheckReport) -> None:
+    """Give each task the views the convention checks quarantine, with their reasons."""
+    refused = checks.refused
+    for task in tasks:
+        items = {view_item(v) for v in task.plan.views}
+        task.refused_views = {item: reason for item, reason in refused.items() if item in items}
+
+
 def _fingerprint(plan: DatasetPlan, settings: IngestSettings, template: Template) -> str:
     """Changes whenever the plan's views, the settings or the template change (resume safety)."""
 
@@ -442,6 +478,7 @@ def _fingerprint(plan: DatasetPlan, settings: IngestSettings, template: Template
             "margin": settings.margin,
             "encoding": settings.encoding,
             "split": {s.subject: s.split for s in plan.subjects},
+            **({"accepted_checks": settings.accepted_checks} if settings.accepted_checks else {}),
         }
     )
 
@@ -610,6 +647,8 @@ def ingest_dataset(
     encoding: str | None = None,
     prepared: tuple[IngestSettings, Template, list[SubjectTask]] | None = None,
     tracking_options: TrackingOptions | None = None,
+    accepted_checks: tuple[str, ...] = (),
+    checks: CheckReport | None = None,
 ) -> IngestSummary:
     """Turn ``plan`` into ``out_root/<plan.dataset>/``; resumes an interrupted run of the same config.
 
@@ -621,6 +660,10 @@ def ingest_dataset(
         template: the template OBJ (default: found next to the tracking export).
         prepared: the result of :func:`prepare` when the caller already ran it (the CLI prints it first).
         tracking_options: what the user states about the tracking (:class:`TrackingOptions`).
+        accepted_checks: convention checks not to apply (:mod:`.checks`); recorded in the manifest.
+        checks: the convention checks' report when the caller already ran them on ``prepared``.
+    Raises:
+        ConventionError: a convention check found a dataset-level mistake; nothing is written.
     """
 
     start = time.perf_counter()
@@ -637,6 +680,10 @@ def ingest_dataset(
     empty = nothing_to_write(plan, tasks)
     if empty:
         raise InputError(empty)
+    checks = checks or check_tasks(tasks, loaded, accepted_checks)
+    checks.raise_for_stops(plan.source_root)
+    refuse_checked_views(tasks, checks)
+    settings = replace(settings, accepted_checks=checks.accepted)
     lights, light_facts = _lights(plan, tasks)
     lighting = (
         f"OLAT light stage: {len(lights)} point lights (lights.arrow) and full-on frames"
@@ -656,6 +703,7 @@ def ingest_dataset(
             + ("" if loaded.neck_mask_path else " (no neck mask: --no-neck-mask, masks include the neck)"),
         ),
         config_fingerprint=_fingerprint(plan, settings, loaded),
+        accepted_checks=checks.accepted,
     )
     dataset_dir = Path(out_root) / plan.dataset
     writer = ShardWriter(dataset_dir, info)

@@ -17,6 +17,7 @@ import numpy as np
 from relightanyone.align.geometry import transform_points, w2c_to_canonical
 from relightanyone.format.codecs import encode_image, encode_mask
 from relightanyone.format.schema import MeshRow, QuarantineEntry, build_image_row
+from relightanyone.ingest.checks import Finding, ImageCheck, view_item
 from relightanyone.ingest.decode import (
     DecodeError,
     TaskDecoder,
@@ -52,6 +53,7 @@ class IngestSettings:
     margin: float
     encoding: str
     video_threads: int = 1  # FFmpeg threads per task; not part of the dataset's fingerprint
+    accepted_checks: tuple[str, ...] = ()  # convention checks overridden on purpose (--accept-check)
 
 
 @dataclass
@@ -63,6 +65,7 @@ class SubjectTask:
     alignments: dict[int, FrameAlignment]
     failures: dict[int, str]
     frame_pairing: str = ""  # how the tracking's timesteps pair with native frames (empty: shipped meshes)
+    refused_views: dict[str, str] = field(default_factory=dict)  # item -> why a convention check refused it
 
 
 @dataclass
@@ -186,10 +189,14 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
         views = sorted(plan.views, key=lambda v: (v.frame, v.camera.name, v.pattern))
         decoder.prefetch_videos(v.image for v in views if v.frame in meshes)
         seen: set[str] = set()
-        for view in views:
+        image_check = ImageCheck(task, {f: m.silhouette for f, m in meshes.items()}, settings.accepted_checks)
+        for view in image_check.passes(views, decoder.prefetch_videos):
             item = f"{plan.subject}/{view.frame:06d}/{view.camera.name}/{view.pattern}"
             if view.frame not in meshes:
                 refuse(part, item, view.source, task.failures.get(view.frame, "no tracked mesh"), "align")
+                continue
+            if item in task.refused_views:
+                refuse(part, item, view.source, task.refused_views[item], "check")
                 continue
             if item in seen:
                 refuse(part, item, view.source, f"a second image for {item} (first one kept)", "plan")
@@ -199,6 +206,8 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
                 alpha = decoder.decode_alpha(view.alpha) if view.alpha is not None else None
             except DecodeError as error:
                 refuse(part, item, view.source, str(error), "decode")
+                continue
+            if image_check.holds(view, item, image):
                 continue
             try:
                 image = apply_colour_calibration(image, view.colour)
@@ -238,4 +247,31 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
             seen.add(item)
             result.rows += 1
             result.bytes += len(row.image) + len(row.mask)
+        for held_item, held_source, reason in image_check.refusals():
+            refuse(part, held_item, held_source, f"check silhouette: {reason}", "check")
     return result
+
+
+def check_images(settings: IngestSettings, task: SubjectTask, frames: int | None = None) -> list[Finding]:
+    """The image check of a task's views, writing nothing: every frame (``doctor``) or the first ``frames``
+    aligned frames (a dry run). One finding per view that fails, its item to quarantine."""
+    template = load_template(
+        Path(settings.template_path), settings.neck_mask_path and Path(settings.neck_mask_path)
+    )
+    aligned = sorted(task.alignments.items())[:frames]
+    silhouettes = {
+        f: FrameMesh.from_vertices(canonical_mesh(a, template), template).silhouette for f, a in aligned
+    }
+    check = ImageCheck(task, silhouettes, settings.accepted_checks)
+    views = sorted(task.plan.views, key=lambda v: (v.frame, v.camera.name, v.pattern))
+    with TaskDecoder(settings.source_root) as decoder:
+        for view in views:
+            if view.frame not in silhouettes or view.pattern != "full":
+                continue
+            try:
+                image, _ = decoder.decode(view.image)
+            except DecodeError:
+                continue  # the ingest quarantines it with the decoder's reason
+            check.holds(view, view_item(view), image)
+    refused, _ = check.decide()
+    return [Finding("silhouette", "view", reason, (item,)) for item, _, reason in refused]

@@ -633,6 +633,7 @@ class DatasetInfo:
     lighting: str
     provenance: Provenance
     config_fingerprint: str
+    accepted_checks: tuple[str, ...] = ()  # ingest convention checks overridden on purpose (--accept-check)
 
     def __post_init__(self) -> None:
         if self.kind not in DATASET_KINDS:
@@ -680,6 +681,7 @@ class Manifest:
             "lights": asdict(self.lights) if self.lights else None,
             "quarantined": self.quarantined,
             "quarantine": asdict(self.quarantine) if self.quarantine else None,
+            **({"accepted_checks": list(self.info.accepted_checks)} if self.info.accepted_checks else {}),
         }
 
     def dumps(self) -> str:
@@ -703,6 +705,7 @@ class Manifest:
                 lighting=values["lighting"],
                 provenance=Provenance.from_json(values["provenance"]),
                 config_fingerprint=values["config_fingerprint"],
+                accepted_checks=tuple(values.get("accepted_checks", ())),
             )
             optional = {
                 k: FileEntry(**values[k]) if values.get(k) else None
