@@ -2,14 +2,14 @@
 
 ``validate_path(DIR)`` accepts one dataset folder or a root holding several and returns a list of
 ``Problem``; an empty list means the data is sound. Checks: manifest present and of the current format
-version; at least one image row; every listed file present, of the listed size (truncation) and sha256 (any
-changed byte); no shard listed twice; no unlisted shard or leftover temporary file; shard schema; every
-row's values matching its checksum (a changed shard is still read, so the corrupted rows are named; past a
-row that cannot be decompressed, the rows are read at their offsets in the index); keys unique across
-shards and equal to the index; names safe as file names; sane ``K`` and ``w2c``; images and masks
-decodable at the declared size, and no mask pixel outside the row's valid pixels (on the zero padding past
-the source image's edge); meshes, lights and quarantine readable, and the quarantine holding as many
-entries as the manifest's ``quarantined``.
+version; at least one image row; every listed file present, of the listed size (truncation) and sha256
+(any changed byte); no shard listed twice; no unlisted shard or leftover temporary file; shard schema; every row's values matching its
+checksum (a changed shard is still read, so the corrupted rows are named; past a row that cannot be
+decompressed, the rows are read at their offsets in the index); keys unique across shards and
+equal to the index; names safe as file names; sane ``K`` and ``w2c``; images and masks decodable at the
+declared size, and no mask pixel outside the row's valid pixels (on the zero padding past the source
+image's edge); meshes, lights and quarantine readable, and the quarantine holding as many entries as the
+manifest's ``quarantined``.
 """
 
 from __future__ import annotations
