@@ -139,7 +139,7 @@ def test_training_subjects_are_rendered_like_the_held_out_answers(nano_world):
     from relightanyone.synth.world import render_subject_olat
 
     answers = WorldAnswers(nano_world)
-    held_out = answers.test_subjects("d2")[0]
+    held_out = answers.subjects_in("d2", "test")[0]
     camera = sorted(answers.cameras("d2"))[0]
     rendered = render_subject_olat(nano_world, "d2", held_out, [camera], preset=nano_preset())[camera]
     for light in range(len(rendered)):

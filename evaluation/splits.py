@@ -1,0 +1,99 @@
+"""Which subjects reached training, and the refusal to score any of them as held out.
+
+Every training run writes ``run.json`` with ``trained_views``: each ``<dataset>/<subject>`` whose rows it
+trained on, with their cameras (:mod:`relightanyone.model.train.run_files`). The runs an evaluation
+depends on are stage 1, stage 2, the single-stage baseline and the colour warm-up that learned a
+dataset's colour matrix (named in the dataset view's ``colour_alignment.json``). A held-out subject
+(split ``val`` or ``test``) that appears in any of them is refused before anything is fitted: its numbers
+would measure memory, not generalization.
+
+Runs written before ``trained_views`` existed are read from their ``subjects`` list (every identity
+code; a stage-2 run lists stage 1's codes but trains on its own dataset only).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from relightanyone.errors import InputError
+from relightanyone.format.schema import COLOUR_ALIGNMENT_NAME
+from relightanyone.model.train.run_files import RUN_INFO_NAME, TRAINED_VIEWS_KEY
+
+HELD_OUT_SPLITS = ("val", "test")
+STAGE2_KINDS = ("stage2", "single-stage")
+
+
+@dataclass(frozen=True)
+class TrainingRun:
+    """A run whose training data an evaluation depends on: its label, folder and recorded views."""
+
+    label: str  # "stage 1", "stage 2", "single-stage", "colour warm-up"
+    path: Path
+    views: dict[str, list[str]]  # "<dataset>/<subject>" -> cameras whose rows reached training
+
+
+def recorded_views(run_dir: Path) -> dict[str, list[str]]:
+    """{``<dataset>/<subject>``: cameras} a run trained on, read from its ``run.json``.
+
+    A run without ``trained_views`` gives its ``subjects`` with an empty camera list (every view)."""
+    path = Path(run_dir) / RUN_INFO_NAME
+    if not path.is_file():
+        raise InputError(f"{path}: run record missing; the split check needs each run's recorded inputs")
+    try:
+        info = json.loads(path.read_text())
+    except ValueError as error:
+        raise InputError(f"{path}: not valid JSON ({error})") from None
+    if TRAINED_VIEWS_KEY in info:
+        return {subject: list(cameras) for subject, cameras in info[TRAINED_VIEWS_KEY].items()}
+    dataset = info.get("dataset", {}).get("name") if info.get("stage") in STAGE2_KINDS else None
+    return {s: [] for s in info.get("subjects", []) if dataset is None or s.split("/", 1)[0] == dataset}
+
+
+def warmup_runs(dataset_dirs: list[Path]) -> list[Path]:
+    """Colour warm-up runs named by the datasets' ``colour_alignment.json`` (their learned matrices)."""
+    runs = []
+    for folder in dataset_dirs:
+        path = Path(folder) / COLOUR_ALIGNMENT_NAME
+        if not path.is_file():
+            continue
+        try:
+            run = json.loads(path.read_text()).get("info", {}).get("warmup_run")
+        except ValueError as error:
+            raise InputError(f"{path}: not valid JSON ({error})") from None
+        if run and Path(run) not in runs:
+            runs.append(Path(run))
+    return runs
+
+
+def training_runs(
+    stage1: Path, stage2: Path, single_stage: Path | None, dataset_dirs: list[Path]
+) -> list[TrainingRun]:
+    """The runs an evaluation of these runs and datasets depends on, with what each trained on.
+
+    The colour warm-ups are those of the evaluated datasets and of the datasets stage 1 trained on."""
+    named = [("stage 1", stage1), ("stage 2", stage2), ("single-stage", single_stage)]
+    runs = [TrainingRun(label, Path(path), recorded_views(path)) for label, path in named if path is not None]
+    stage1_info = json.loads((Path(stage1) / RUN_INFO_NAME).read_text())
+    stage1_data = [Path(d["path"]) for d in stage1_info.get("datasets", []) if "path" in d]
+    warmups = warmup_runs([*dataset_dirs, *stage1_data])
+    return runs + [TrainingRun("colour warm-up", path, recorded_views(path)) for path in warmups]
+
+
+def runs_that_trained(subject_key: str, runs: list[TrainingRun]) -> list[TrainingRun]:
+    """The runs whose training rows include ``<dataset>/<subject>``."""
+    return [run for run in runs if subject_key in run.views]
+
+
+def refuse_trained_subjects(split: str, subject_keys: list[str], runs: list[TrainingRun]) -> None:
+    """Raise InputError naming the first held-out subject that reached a run's training, and the run."""
+    if split not in HELD_OUT_SPLITS:
+        raise InputError(f"evaluate --split {split!r}: held-out splits are {', '.join(HELD_OUT_SPLITS)}")
+    for key in subject_keys:
+        for run in runs_that_trained(key, runs):
+            cameras = ", ".join(run.views[key]) or "all views"
+            raise InputError(
+                f"{run.path / RUN_INFO_NAME}: {split} subject {key} reached training in the {run.label} run "
+                f"({cameras}); a {split} subject must never train: re-split the data or retrain without it"
+            )
