@@ -140,7 +140,10 @@ def evaluate_command(
         progress=not quiet,
     )
     results = run_evaluation(inputs, settings, out, json_copy)
-    click.echo(f"wrote {out / 'report.md'} and {out / 'evaluation.json'}")
+    click.echo(
+        f"wrote {out / 'report.md'} and {out / 'evaluation.json'} ({results['run_kind']}, "
+        f"protocol {results['protocol_sha256'][:12]})"
+    )
     for claim, value in results.get("goals", {}).items():
         click.echo(f"  {claim}: {'not evaluated' if value is None else ('yes' if value else 'NO')}")
 

@@ -8,6 +8,14 @@ from dataclasses import asdict
 from pathlib import Path
 
 from relightanyone.errors import InputError
+from relightanyone.evaluation.protocol import (
+    PAPER_NUMBERS,
+    add_statistics,
+    held_out_counts,
+    protocol_hash,
+    protocol_record,
+    run_kind,
+)
 from relightanyone.evaluation.report import write_report
 from relightanyone.evaluation.tables import Evaluation, EvaluationInputs, EvaluationSettings
 from relightanyone.evaluation.truth import WorldAnswers, match_world_dataset
@@ -39,6 +47,12 @@ def run_evaluation(
     evaluation = Evaluation(inputs, settings)
     results = evaluation.run()
     results["settings"] = asdict(settings)
+    results["protocol"] = protocol_record(settings, evaluation.fit_settings())
+    results["protocol_sha256"] = protocol_hash(results["protocol"])
+    add_statistics(results)
+    results["held_out_subjects"] = held_out_counts(results)
+    results["run_kind"] = run_kind(results)
+    results["paper_numbers"] = PAPER_NUMBERS
     results["inputs"] = {
         "world": None if inputs.answers is None else str(inputs.answers.world),
         "datasets": {k: str(v) for k, v in inputs.datasets.items()},
