@@ -3,6 +3,7 @@ written report (``report.md``, ``evaluation.json``, ``grids/``)."""
 
 from __future__ import annotations
 
+import json
 import shutil
 from dataclasses import asdict
 from pathlib import Path
@@ -21,6 +22,7 @@ from relightanyone.evaluation.tables import Evaluation, EvaluationInputs, Evalua
 from relightanyone.evaluation.truth import WorldAnswers, match_world_dataset
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import MANIFEST_NAME
+from relightanyone.model.train.run_files import METRICS_NAME
 
 
 def world_datasets(values: tuple[str, ...], answers: WorldAnswers) -> dict[str, Path]:
@@ -40,6 +42,17 @@ def world_datasets(values: tuple[str, ...], answers: WorldAnswers) -> dict[str, 
     return datasets
 
 
+def stage1_held_out(stage1: Path) -> dict | None:
+    """Stage 1's held-out-view scores per dataset ({name: {psnr, ssim, views}}), None when not recorded."""
+    path = Path(stage1) / METRICS_NAME
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text()).get("held_out")
+    except ValueError as error:
+        raise InputError(f"{path}: not valid JSON ({error})") from None
+
+
 def run_evaluation(
     inputs: EvaluationInputs, settings: EvaluationSettings, out: Path, json_copy: Path | None = None
 ) -> dict:
@@ -53,6 +66,7 @@ def run_evaluation(
     results["held_out_subjects"] = held_out_counts(results)
     results["run_kind"] = run_kind(results)
     results["paper_numbers"] = PAPER_NUMBERS
+    results["stage1_held_out"] = stage1_held_out(inputs.stage1)
     results["inputs"] = {
         "world": None if inputs.answers is None else str(inputs.answers.world),
         "datasets": {k: str(v) for k, v in inputs.datasets.items()},

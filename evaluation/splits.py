@@ -19,6 +19,7 @@ from pathlib import Path
 
 from relightanyone.errors import InputError
 from relightanyone.format.schema import COLOUR_ALIGNMENT_NAME
+from relightanyone.model.train.colour_warmup import WARMUP_DIR
 from relightanyone.model.train.run_files import RUN_INFO_NAME, TRAINED_VIEWS_KEY
 
 HELD_OUT_SPLITS = ("val", "test")
@@ -52,18 +53,30 @@ def recorded_views(run_dir: Path) -> dict[str, list[str]]:
 
 
 def warmup_runs(dataset_dirs: list[Path]) -> list[Path]:
-    """Colour warm-up runs named by the datasets' ``colour_alignment.json`` (their learned matrices)."""
+    """Colour warm-up runs named by the datasets' ``colour_alignment.json`` (their learned matrices).
+
+    A folder moved since (the recorded path has no ``run.json``) is looked for where ``align-colour``
+    writes it, ``warmup/`` beside the dataset views."""
     runs = []
     for folder in dataset_dirs:
         path = Path(folder) / COLOUR_ALIGNMENT_NAME
         if not path.is_file():
             continue
         try:
-            run = json.loads(path.read_text()).get("info", {}).get("warmup_run")
+            recorded = json.loads(path.read_text()).get("info", {}).get("warmup_run")
         except ValueError as error:
             raise InputError(f"{path}: not valid JSON ({error})") from None
-        if run and Path(run) not in runs:
-            runs.append(Path(run))
+        if not recorded:
+            continue
+        candidates = [Path(recorded), Path(folder).parent / WARMUP_DIR]
+        run = next((c for c in candidates if (c / RUN_INFO_NAME).is_file()), None)
+        if run is None:
+            raise InputError(
+                f"{path}: its colour warm-up run {recorded} is gone; the split check needs the subjects it "
+                "trained on (restore the run folder or re-run align-colour)"
+            )
+        if run not in runs:
+            runs.append(run)
     return runs
 
 

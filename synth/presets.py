@@ -9,7 +9,7 @@ Subjects are split train / validation / test; only training subjects reach train
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 
 @dataclass(frozen=True)
@@ -55,6 +55,53 @@ class Preset:
         return getattr(self, dataset)
 
 
+def with_held_out(preset: Preset, name: str, test_subjects: int, val_subjects: int) -> Preset:
+    """``preset`` renamed, with these test and validation subjects in every dataset (training unchanged)."""
+    sizes = {
+        dataset: replace(preset.size_of(dataset), test_subjects=test_subjects, val_subjects=val_subjects)
+        for dataset in preset.datasets
+    }
+    return replace(preset, name=name, **sizes)
+
+
+DEMO = Preset(
+    name="demo",
+    template_segments=72,
+    texture_size=256,
+    supersampling=1,
+    answer_lights=32,
+    envmap_count=4,
+    d1=DatasetSize(
+        train_subjects=12,
+        test_subjects=3,
+        val_subjects=1,
+        cameras=12,
+        image_size=(192, 288),
+        lights=32,
+    ),
+    d2=DatasetSize(
+        train_subjects=14,
+        test_subjects=2,
+        val_subjects=1,
+        cameras=24,
+        image_size=(167, 256),
+        frames=2,
+        lights=32,
+    ),
+    d3=DatasetSize(
+        train_subjects=8, test_subjects=2, val_subjects=1, cameras=8, image_size=(256, 192), lights=4
+    ),
+    d4=DatasetSize(
+        train_subjects=8,
+        test_subjects=2,
+        val_subjects=1,
+        cameras=16,
+        image_size=(176, 256),
+        frames=2,
+        lights=8,
+    ),
+)
+
 PRESETS: dict[str, Preset] = {
     preset.name: preset
     for preset in (
@@ -74,80 +121,8 @@ PRESETS: dict[str, Preset] = {
                 train_subjects=2, test_subjects=1, cameras=16, image_size=(110, 160), frames=2, lights=8
             ),
         ),
-        Preset(
-            name="demo",
-            template_segments=72,
-            texture_size=256,
-            supersampling=1,
-            answer_lights=32,
-            envmap_count=4,
-            d1=DatasetSize(
-                train_subjects=12,
-                test_subjects=3,
-                val_subjects=1,
-                cameras=12,
-                image_size=(192, 288),
-                lights=32,
-            ),
-            d2=DatasetSize(
-                train_subjects=14,
-                test_subjects=2,
-                val_subjects=1,
-                cameras=24,
-                image_size=(167, 256),
-                frames=2,
-                lights=32,
-            ),
-            d3=DatasetSize(
-                train_subjects=8, test_subjects=2, val_subjects=1, cameras=8, image_size=(256, 192), lights=4
-            ),
-            d4=DatasetSize(
-                train_subjects=8,
-                test_subjects=2,
-                val_subjects=1,
-                cameras=16,
-                image_size=(176, 256),
-                frames=2,
-                lights=8,
-            ),
-        ),
-        Preset(
-            name="reference",
-            template_segments=72,
-            texture_size=256,
-            supersampling=1,
-            answer_lights=32,
-            envmap_count=4,
-            d1=DatasetSize(
-                train_subjects=12,
-                test_subjects=5,
-                val_subjects=2,
-                cameras=12,
-                image_size=(192, 288),
-                lights=32,
-            ),
-            d2=DatasetSize(
-                train_subjects=14,
-                test_subjects=5,
-                val_subjects=2,
-                cameras=24,
-                image_size=(167, 256),
-                frames=2,
-                lights=32,
-            ),
-            d3=DatasetSize(
-                train_subjects=8, test_subjects=5, val_subjects=2, cameras=8, image_size=(256, 192), lights=4
-            ),
-            d4=DatasetSize(
-                train_subjects=8,
-                test_subjects=5,
-                val_subjects=2,
-                cameras=16,
-                image_size=(176, 256),
-                frames=2,
-                lights=8,
-            ),
-        ),
+        DEMO,
+        with_held_out(DEMO, "reference", test_subjects=5, val_subjects=2),
         Preset(
             name="paper",
             template_segments=160,

@@ -240,7 +240,7 @@ def test_tables_and_report(evaluated):
     assert (evaluated["root"] / "bench" / "evaluation.json").read_text() == (
         out / "evaluation.json"
     ).read_text()
-    assert len(saved["goals"]) == 7
+    assert len(saved["goals"]) == 8
     # One held-out subject per dataset: a smoke run, whose comparisons have no interval and no win.
     assert saved["run_kind"] == "smoke run" and saved["held_out_subjects"] == {"d1": 1, "d2": 1}
     assert saved["protocol"]["split"] == "test" and len(saved["protocol_sha256"]) == 64

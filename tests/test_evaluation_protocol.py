@@ -117,3 +117,9 @@ def test_smoke_and_reference_runs_and_the_goals():
     expansion = next(k for k in checked if k.startswith("Table 3: expansion"))
     assert checked[expansion] is False and "d2 29.00, d3 27.00" in expansion  # d3 under 28 dB
     assert protocol.goals(_results(5, 29.0, 29.5))[next(iter(checked))] is False
+    stage1 = next(k for k in checked if k.startswith("Stage 1"))
+    assert checked[stage1] is None  # no stage-1 metrics recorded
+    reference["stage1_held_out"] = {"faceolat": {"psnr": 42.2}, "nersemble": {"psnr": 23.9}}
+    assert list(protocol.goals(reference).values())[-1] is False
+    reference["stage1_held_out"]["nersemble"]["psnr"] = 28.5
+    assert list(protocol.goals(reference).values())[-1] is True

@@ -128,3 +128,19 @@ def test_evaluate_refuses_a_test_subject_a_run_trained_on(split_dataset, tmp_pat
     # fails later only because these runs have no checkpoint).
     result = CliRunner().invoke(cli, [*args, "--split", "val"])
     assert "reached training" not in result.output
+
+
+def test_the_colour_warmup_run_is_found_after_its_folder_moved(tmp_path):
+    """A dataset view names its warm-up run by absolute path; a moved aligned/ folder is still checked
+    (warmup/ beside the views), and a lost run is an error rather than an unchecked evaluation."""
+    from relightanyone.evaluation.splits import warmup_runs
+
+    aligned = tmp_path / "aligned"
+    view = aligned / "ava256"
+    view.mkdir(parents=True)
+    document = {"info": {"warmup_run": str(tmp_path / "elsewhere" / "warmup")}}
+    (view / "colour_alignment.json").write_text(json.dumps(document))
+    with pytest.raises(InputError, match="colour warm-up run .* is gone"):
+        warmup_runs([view])
+    write_run(aligned / "warmup", {"stage": "stage1-warmup", "trained_views": {"ava256/a": ["c0"]}})
+    assert warmup_runs([view, aligned / "faceolat"]) == [aligned / "warmup"]
