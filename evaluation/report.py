@@ -287,6 +287,12 @@ def write_report(out: Path, results: dict, tables: dict, input_images: dict[str,
         f"- split: {markdown_text(settings.get('split', 'test'))}; protocol SHA-256 "
         f"{markdown_code(results.get('protocol_sha256', 'not recorded'))} (settings in evaluation.json)",
         f"- world: {markdown_code(inputs.get('world'))}",
+        "- training seeds: "
+        + (
+            ", ".join(f"{markdown_text(r['label'])} {r['seed']}" for r in results.get("training_runs", []))
+            or "not recorded"
+        )
+        + " (one training seed per run: the retraining noise is not measured)",
         f"- datasets: {datasets}",
         f"- runs: stage 1 {markdown_code(inputs.get('stage1'))}, stage 2 {markdown_code(inputs.get('stage2'))}, "
         f"single-stage {markdown_code(inputs.get('single_stage') or 'not given')}",

@@ -67,6 +67,9 @@ def run_evaluation(
     results["run_kind"] = run_kind(results)
     results["paper_numbers"] = PAPER_NUMBERS
     results["stage1_held_out"] = stage1_held_out(inputs.stage1)
+    results["training_runs"] = [
+        {"label": run.label, "path": str(run.path), "seed": run.seed} for run in evaluation.training_runs
+    ]
     results["inputs"] = {
         "world": None if inputs.answers is None else str(inputs.answers.world),
         "datasets": {k: str(v) for k, v in inputs.datasets.items()},

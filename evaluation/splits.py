@@ -33,19 +33,30 @@ class TrainingRun:
     label: str  # "stage 1", "stage 2", "single-stage", "colour warm-up"
     path: Path
     views: dict[str, list[str]]  # "<dataset>/<subject>" -> cameras whose rows reached training
+    seed: int | None = None
 
 
-def recorded_views(run_dir: Path) -> dict[str, list[str]]:
-    """{``<dataset>/<subject>``: cameras} a run trained on, read from its ``run.json``.
-
-    A run without ``trained_views`` gives its ``subjects`` with an empty camera list (every view)."""
+def read_run_info(run_dir: Path) -> dict:
+    """A run's ``run.json``; InputError naming it when it is missing or not JSON."""
     path = Path(run_dir) / RUN_INFO_NAME
     if not path.is_file():
         raise InputError(f"{path}: run record missing; the split check needs each run's recorded inputs")
     try:
-        info = json.loads(path.read_text())
+        return json.loads(path.read_text())
     except ValueError as error:
         raise InputError(f"{path}: not valid JSON ({error})") from None
+
+
+def training_run(label: str, run_dir: Path) -> TrainingRun:
+    """The run at ``run_dir`` with the views it trained on and its seed."""
+    info = read_run_info(run_dir)
+    return TrainingRun(label, Path(run_dir), recorded_views(info), info.get("seed"))
+
+
+def recorded_views(info: dict) -> dict[str, list[str]]:
+    """{``<dataset>/<subject>``: cameras} a run trained on, from its ``run.json`` document.
+
+    A run without ``trained_views`` gives its ``subjects`` with an empty camera list (every view)."""
     if TRAINED_VIEWS_KEY in info:
         return {subject: list(cameras) for subject, cameras in info[TRAINED_VIEWS_KEY].items()}
     dataset = info.get("dataset", {}).get("name") if info.get("stage") in STAGE2_KINDS else None
@@ -87,11 +98,11 @@ def training_runs(
 
     The colour warm-ups are those of the evaluated datasets and of the datasets stage 1 trained on."""
     named = [("stage 1", stage1), ("stage 2", stage2), ("single-stage", single_stage)]
-    runs = [TrainingRun(label, Path(path), recorded_views(path)) for label, path in named if path is not None]
-    stage1_info = json.loads((Path(stage1) / RUN_INFO_NAME).read_text())
-    stage1_data = [Path(d["path"]) for d in stage1_info.get("datasets", []) if "path" in d]
-    warmups = warmup_runs([*dataset_dirs, *stage1_data])
-    return runs + [TrainingRun("colour warm-up", path, recorded_views(path)) for path in warmups]
+    runs = [training_run(label, path) for label, path in named if path is not None]
+    stage1_data = [Path(d["path"]) for d in read_run_info(stage1).get("datasets", []) if "path" in d]
+    return runs + [
+        training_run("colour warm-up", path) for path in warmup_runs([*dataset_dirs, *stage1_data])
+    ]
 
 
 def runs_that_trained(subject_key: str, runs: list[TrainingRun]) -> list[TrainingRun]:

@@ -13,7 +13,12 @@ from helpers.custom_capture import make_capture
 
 from relightanyone.cli import cli
 from relightanyone.errors import InputError
-from relightanyone.evaluation.splits import TrainingRun, recorded_views, refuse_trained_subjects
+from relightanyone.evaluation.splits import (
+    TrainingRun,
+    recorded_views,
+    refuse_trained_subjects,
+    training_run,
+)
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.ingest.records import published_splits
 from relightanyone.model.train.data import Stage1Data
@@ -82,13 +87,13 @@ def write_run(folder: Path, info: dict) -> Path:
 
 
 def test_recorded_views_of_old_and_new_runs(tmp_path):
-    new = write_run(tmp_path / "new", {"stage": "stage1", "trained_views": {"d/a": ["c0", "c1"]}})
-    assert recorded_views(new) == {"d/a": ["c0", "c1"]}
+    new = write_run(tmp_path / "new", {"stage": "stage1", "seed": 3, "trained_views": {"d/a": ["c0", "c1"]}})
+    assert training_run("stage 1", new) == TrainingRun("stage 1", new, {"d/a": ["c0", "c1"]}, 3)
     # A stage-2 run without trained_views lists stage 1's codes but trains on its own dataset only.
-    old = write_run(
-        tmp_path / "old", {"stage": "stage2", "dataset": {"name": "olat"}, "subjects": ["olat/a", "flat/b"]}
-    )
+    old = {"stage": "stage2", "dataset": {"name": "olat"}, "subjects": ["olat/a", "flat/b"]}
     assert recorded_views(old) == {"olat/a": []}
+    with pytest.raises(InputError, match="run record missing"):
+        training_run("stage 2", tmp_path / "nowhere")
 
 
 def test_a_held_out_subject_that_trained_is_refused_naming_it_and_the_run(tmp_path):
