@@ -149,7 +149,8 @@ def metric_table(
             f"| {markdown_text(ROW_NAMES.get(name, name))} | {cells} | {values.get('images', '–')} |"
         )
     for name, values in (extra or {}).items():
-        cells = " | ".join(_format(m, values.get(m)) for m in metrics)
+        # Published numbers exactly as printed (0.87, not 0.8700).
+        cells = " | ".join(f"{values[m]:g}" if m in values else "–" for m in metrics)
         lines.append(f"| {markdown_text(name)} | {cells} | – |")
     return lines
 

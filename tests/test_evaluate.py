@@ -249,7 +249,11 @@ def test_tables_and_report(evaluated):
     assert {"psnr_srgb", "ssim_srgb", "rmse_srgb"} <= set(saved["table1"]["mean"]["two_stage"])
     report = (out / "report.md").read_text()
     assert "synthetic world" in report and "different data, not comparable" in report
-    assert "30.06" in report and "smoke run" in report.lower() and saved["lpips"].startswith("skipped")
+    assert (
+        "| 30.06 | 0.87 | 0.0655 |" in report
+        and "smoke run" in report.lower()
+        and saved["lpips"].startswith("skipped")
+    )
     for grid in [g for names in saved["grids"].values() for g in names]:
         image = cv2.imread(str(out / grid))
         assert image is not None and image.shape[0] >= 128
