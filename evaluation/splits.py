@@ -92,17 +92,27 @@ def warmup_runs(dataset_dirs: list[Path]) -> list[Path]:
 
 
 def training_runs(
-    stage1: Path, stage2: Path, single_stage: Path | None, dataset_dirs: list[Path]
+    stage1: Path,
+    stage2: Path,
+    single_stage: Path | None,
+    dataset_dirs: list[Path],
+    other_runs: dict[str, Path] | None = None,
 ) -> list[TrainingRun]:
     """The runs an evaluation of these runs and datasets depends on, with what each trained on.
 
-    The colour warm-ups are those of the evaluated datasets and of the datasets stage 1 trained on."""
+    other_runs: further labelled runs the evaluation uses (e.g. ablation arms). The colour warm-ups are
+    those of the evaluated datasets and of the datasets every one of these runs trained on."""
     named = [("stage 1", stage1), ("stage 2", stage2), ("single-stage", single_stage)]
+    named += list((other_runs or {}).items())
     runs = [training_run(label, path) for label, path in named if path is not None]
-    stage1_data = [Path(d["path"]) for d in read_run_info(stage1).get("datasets", []) if "path" in d]
-    return runs + [
-        training_run("colour warm-up", path) for path in warmup_runs([*dataset_dirs, *stage1_data])
+    trained_data = [
+        Path(d["path"])
+        for run in runs
+        for d in read_run_info(run.path).get("datasets", [])
+        if isinstance(d, dict) and "path" in d
     ]
+    warmups = warmup_runs([*dataset_dirs, *trained_data])
+    return runs + [training_run("colour warm-up", path) for path in warmups]
 
 
 def runs_that_trained(subject_key: str, runs: list[TrainingRun]) -> list[TrainingRun]:

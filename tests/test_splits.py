@@ -149,3 +149,22 @@ def test_the_colour_warmup_run_is_found_after_its_folder_moved(tmp_path):
         warmup_runs([view])
     write_run(aligned / "warmup", {"stage": "stage1-warmup", "trained_views": {"ava256/a": ["c0"]}})
     assert warmup_runs([view, aligned / "faceolat"]) == [aligned / "warmup"]
+
+
+def test_every_run_an_evaluation_uses_is_checked(tmp_path):
+    """Stage 1, stage 2, further runs (ablation arms) and the warm-ups named by any of their datasets."""
+    from relightanyone.evaluation.splits import training_runs
+
+    view = tmp_path / "aligned-arm" / "flat"
+    view.mkdir(parents=True)
+    warmup = write_run(tmp_path / "aligned-arm" / "warmup", {"trained_views": {"flat/w": ["c0"]}})
+    (view / "colour_alignment.json").write_text(json.dumps({"info": {"warmup_run": str(warmup)}}))
+    stage1 = write_run(tmp_path / "s1", {"datasets": [], "trained_views": {"olat/a": ["c0"]}})
+    stage2 = write_run(tmp_path / "s2", {"trained_views": {"olat/a": ["c0"]}})
+    arm = write_run(
+        tmp_path / "arm", {"datasets": [{"name": "flat", "path": str(view)}], "trained_views": {}}
+    )
+    runs = training_runs(stage1, stage2, None, [], {"no-zl stage 1": arm})
+    assert [r.label for r in runs] == ["stage 1", "stage 2", "no-zl stage 1", "colour warm-up"]
+    with pytest.raises(InputError, match="flat/w reached training in the colour warm-up run"):
+        refuse_trained_subjects("test", ["flat/w"], runs)
