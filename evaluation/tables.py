@@ -234,15 +234,17 @@ class Evaluation:
         self.training_runs = training_runs(
             inputs.stage1, inputs.stage2, inputs.single_stage, list(inputs.datasets.values())
         )
-        refuse_trained_subjects(
-            settings.split,
-            [
-                f"{NormalizedDataset(path).name}/{subject}"
-                for world_name, path in sorted(inputs.datasets.items())
-                for subject in self.held_out_subjects(world_name)
-            ],
-            self.training_runs,
-        )
+        held_out = [
+            f"{NormalizedDataset(path).name}/{subject}"
+            for world_name, path in sorted(inputs.datasets.items())
+            for subject in self.held_out_subjects(world_name)
+        ]
+        refuse_trained_subjects(settings.split, held_out, self.training_runs)
+        if not held_out:
+            raise InputError(
+                f"no {settings.split} subjects in the evaluated datasets {sorted(inputs.datasets)}; "
+                f"the world's or the rows' splits give none (choose another --split)"
+            )
         self.model = load_relightable_model(inputs.stage1, inputs.stage2)
         self.single = None
         if inputs.single_stage is not None:

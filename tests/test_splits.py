@@ -133,6 +133,9 @@ def test_evaluate_refuses_a_test_subject_a_run_trained_on(split_dataset, tmp_pat
     # fails later only because these runs have no checkpoint).
     result = CliRunner().invoke(cli, [*args, "--split", "val"])
     assert "reached training" not in result.output
+    (world / "answers" / "splits.json").write_text(json.dumps({"d1": {"s1": "train", "s3": "test"}}))
+    result = CliRunner().invoke(cli, [*args, "--split", "val"])
+    assert result.exit_code == 1 and "no val subjects" in result.stderr, result.output
 
 
 def test_the_colour_warmup_run_is_found_after_its_folder_moved(tmp_path):
