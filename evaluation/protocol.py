@@ -101,19 +101,22 @@ def protocol_record(settings: Any, fit_settings: Any) -> dict:
 
 
 def protocol_hash(record: dict) -> str:
-    """SHA-256 of the record's canonical JSON (sorted keys, no spaces)."""
-    return sha256_bytes(json.dumps(record, sort_keys=True, separators=(",", ":")).encode())
+    """SHA-256 of the record's canonical JSON (sorted keys, no spaces; paths and other values as text)."""
+    return sha256_bytes(json.dumps(record, sort_keys=True, separators=(",", ":"), default=str).encode())
 
 
 def add_statistics(results: dict) -> None:
-    """Add ``interval`` and ``comparisons`` (:func:`statistics.table_statistics`) to every table of
-    ``results``, from its per-subject metrics."""
-    for table, pairs in COMPARISONS.items():
-        entry = results.get(table)
-        if not entry or not entry.get("subjects"):
+    """Add ``interval`` and ``comparisons`` (:func:`statistics.table_statistics`, pairs from
+    :data:`COMPARISONS`) to every table of ``results`` (an entry with per-subject ``subjects``)."""
+    for table, entry in results.items():
+        if (
+            not isinstance(entry, dict)
+            or not isinstance(entry.get("subjects"), dict)
+            or not entry["subjects"]
+        ):
             continue
         per_subject = {key: subject["metrics"] for key, subject in entry["subjects"].items()}
-        summary = statistics.table_statistics(per_subject, pairs)
+        summary = statistics.table_statistics(per_subject, COMPARISONS.get(table, []))
         entry["interval"] = summary["interval"]
         entry["comparisons"] = summary["comparisons"]
 
