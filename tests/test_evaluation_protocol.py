@@ -86,19 +86,29 @@ def test_protocol_hash_changes_with_any_setting_but_not_with_progress():
 def _results(subjects_per_dataset: int, two_stage: float, single_stage: float) -> dict:
     table1 = {
         f"d1/s{i}": {
-            "metrics": {"two_stage": {"psnr": two_stage + 0.1 * i}, "single_stage": {"psnr": single_stage}}
+            "source": "rows",
+            "cameras": ["c0"],
+            "metrics": {"two_stage": {"psnr": two_stage + 0.1 * i}, "single_stage": {"psnr": single_stage}},
         }
         for i in range(subjects_per_dataset)
     }
-    table3b = {f"d2/f{i}": {"metrics": {"two_stage": {"psnr": 25.0}}} for i in range(subjects_per_dataset)}
+    table3b = {
+        f"d2/f{i}": {"source": "rows", "cameras": ["c0"], "metrics": {"two_stage": {"psnr": 25.0}}}
+        for i in range(subjects_per_dataset)
+    }
     results = {
         "table1": {"subjects": table1, "mean": {"two_stage": {"psnr": two_stage}}},
         "table3_fitted": {"subjects": table3b, "mean": {}},
         "table3": {
             "subjects": {
-                "d2/t0": {"metrics": {"with_lighting_code": {"psnr": 29.0}}},
-                "d3/t0": {"metrics": {"with_lighting_code": {"psnr": 27.0}}},
-            }
+                f"{d}/t0": {
+                    "source": "rows",
+                    "cameras": ["c0"],
+                    "metrics": {"with_lighting_code": {"psnr": v}},
+                }
+                for d, v in (("d2", 29.0), ("d3", 27.0))
+            },
+            "mean": {},
         },
     }
     protocol.add_statistics(results)
@@ -123,3 +133,17 @@ def test_smoke_and_reference_runs_and_the_goals():
     assert list(protocol.goals(reference).values())[-1] is False
     reference["stage1_held_out"]["nersemble"]["psnr"] = 28.5
     assert list(protocol.goals(reference).values())[-1] is True
+
+
+def test_the_report_shows_intervals_wins_and_the_run_kind(tmp_path):
+    from relightanyone.evaluation.report import write_report
+
+    results = _results(5, 31.0, 29.0)
+    results["run_kind"] = protocol.run_kind(results)
+    report = write_report(tmp_path, results, {}, {}).read_text()
+    assert report.startswith("# Evaluation on the synthetic world (reference evaluation)")
+    assert "ΔPSNR +2.20 dB, [+2.08, +2.32] dB: **win**" in report
+    assert "| two-stage, paper \\(different data, not comparable\\) | 30.06 |" in report
+    smoke = _results(1, 31.0, 29.0)
+    report = write_report(tmp_path, smoke, {}, {}).read_text()
+    assert "(smoke run)" in report and "no interval (1 subject), not a win" in report
