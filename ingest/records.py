@@ -140,6 +140,17 @@ class SubjectPlan:
     # Tracked meshes shipped with the dataset itself (custom captures): frame -> OBJ path, in the native
     # world and its units (see DatasetPlan.mesh_units_to_m). Empty when a tracking export provides them.
     meshes: dict[int, str] = field(default_factory=dict)
+    # Every calibrated camera of the rig, native ``w2c (4, 4)`` by name, whatever the selection keeps or
+    # a dropped frame lacks: the native->tracker fit of each frame uses them all. Empty: the views' cameras.
+    rig_w2c: dict[str, np.ndarray] = field(default_factory=dict)
+    # frame -> head-to-native-world pose ``(4, 4)`` folded into ``rig_w2c`` for that frame (Ava-256).
+    head_poses: dict[int, np.ndarray] = field(default_factory=dict)
+    # Facts about this subject printed before writing (image sizes, downscale, ...).
+    found: dict = field(default_factory=dict)
+    # The capture's native frame rate (fps) and frame count, where a container states them (videos): the
+    # tracking's timesteps are paired with native frames against them. None for captures of still images.
+    frame_rate: float | None = None
+    frame_count: int | None = None
 
 
 @dataclass
@@ -181,6 +192,9 @@ class AdapterOptions:
         False  # datasets with a preferred frame (Ava-256's neutral peak): take every listed frame
     )
     sequence: str | None = None  # datasets recorded as named sequences (NeRSemble): which one to ingest
+    # (width, height) of the sensor the calibration's K describes, when the layout does not say it and it
+    # is not the dataset's usual sensor (Ava-256: 2668x4096; NeRSemble: the file's width/height or 2200x3208)
+    sensor_size: tuple[int, int] | None = None
 
     def keeps_subject(self, subject: str) -> bool:
         return self.subjects is None or subject in self.subjects

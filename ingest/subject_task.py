@@ -61,6 +61,7 @@ class SubjectTask:
     plan: SubjectPlan
     alignments: dict[int, FrameAlignment]
     failures: dict[int, str]
+    frame_pairing: str = ""  # how the tracking's timesteps pair with native frames (empty: shipped meshes)
 
 
 @dataclass

@@ -161,7 +161,16 @@ def write_calibrated_v1(world, out):
         K = np.array(params["intrinsics"])
         K[:2, :2] *= 2.0
         K[:2, 2] = (K[:2, 2] + 0.5) * 2.0 - 0.5
-        (target / "camera_params.json").write_text(json.dumps({**params, "intrinsics": K.tolist()}))
+        (target / "camera_params.json").write_text(
+            json.dumps(
+                {
+                    **params,
+                    "intrinsics": K.tolist(),
+                    "width": 2 * params["width"],
+                    "height": 2 * params["height"],
+                }
+            )
+        )
         ccms = read_nersemble_colour_calibration(participant / "calibration/color_calibration.json")
         for video in sorted((participant / "sequences/EXP-1-head/images").glob("cam_*.mp4")):
             serial = video.stem[len("cam_") :]

@@ -2,6 +2,7 @@
 
 ``validate_path(DIR)`` accepts one dataset folder or a root holding several and returns a list of
 ``Problem``; an empty list means the data is sound. Checks: manifest present and of format version 1;
+at least one image row;
 every listed file present, of the listed size (truncation) and sha256 (any changed byte); no shard listed
 twice; no unlisted shard or leftover temporary file; shard schema; keys unique across shards and equal to
 the index; names safe as file names; sane ``K`` and ``w2c``; images and masks decodable at the declared size; meshes, lights and
@@ -140,6 +141,14 @@ def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = Fa
     except (IncompleteDatasetError, SchemaError) as error:
         return [Problem(str(dataset_dir / MANIFEST_NAME), None, str(error))]
     problems: list[Problem] = []
+    if manifest.counts.get("images", 0) == 0:
+        problems.append(
+            Problem(
+                str(dataset_dir / MANIFEST_NAME),
+                None,
+                f"the dataset holds no image row ({manifest.quarantined} items quarantined, see {QUARANTINE_NAME})",
+            )
+        )
     listed = Counter(entry.file for entry in manifest.shards)
     for name, times in sorted(listed.items()):
         if times > 1:
