@@ -87,6 +87,14 @@ class ColourCalibration:
         if self.space not in ("linear", "display"):
             raise ValueError(f"colour calibration space must be 'linear' or 'display', got {self.space!r}")
 
+    def applied_matrix(self) -> np.ndarray:
+        """(3, 4) ``[matrix | offset − matrix @ black]``: the same correction as one affine map,
+        ``rgb_out = A[:, :3] @ rgb_in + A[:, 3]`` (on display-encoded values when ``space`` is
+        ``"display"``), as a row records it."""
+        matrix = np.asarray(self.matrix, dtype=np.float64)
+        offset = np.asarray(self.offset, dtype=np.float64) - matrix @ np.asarray(self.black, dtype=np.float64)
+        return np.hstack([matrix, offset.reshape(3, 1)])
+
     @staticmethod
     def identity() -> ColourCalibration:
         return ColourCalibration(matrix=np.eye(3))

@@ -104,15 +104,16 @@ def crop_array(array: np.ndarray, box: CropBox) -> np.ndarray:
 
 def random_crop(item: dict[str, Any], size: int, rng: np.random.Generator) -> dict[str, Any]:
     """A dataset item (:class:`~relightanyone.format.torch_dataset.NormalizedTorchDataset`) cropped to the
-    window :func:`choose_crop` draws from its mask: image (3, size, size), mask (1, size, size) and K
-    (float64) of the crop; the other fields as they are."""
+    window :func:`choose_crop` draws from its mask: image (3, size, size), mask and valid (1, size, size)
+    and K (float64) of the crop; the other fields as they are. A window past the image's edge is padding:
+    invalid."""
     box = choose_crop(item["mask"][0].numpy(), size, rng)
-    return {
-        **item,
-        "image": torch.from_numpy(crop_array(item["image"].numpy(), box)),
-        "mask": torch.from_numpy(crop_array(item["mask"].numpy(), box)),
-        "K": torch.from_numpy(crop_intrinsics(item["K"].numpy(), box.x0, box.y0)),
+    cropped = {
+        name: torch.from_numpy(crop_array(item[name].numpy(), box))
+        for name in ("image", "mask", "valid")
+        if name in item
     }
+    return {**item, **cropped, "K": torch.from_numpy(crop_intrinsics(item["K"].numpy(), box.x0, box.y0))}
 
 
 # At least this share of each subject's cameras trains, whatever the preset asks to hold out: a preset

@@ -247,7 +247,7 @@ def _train_stage1(config: Stage1Config, group: ProcessGroup) -> dict:
         loss, terms = stage1_loss(
             render_bg,
             target_bg,
-            torch.ones_like(batch["mask"]),
+            batch["valid"],  # the whole crop but the padding past the source image, which shows no head
             vertices,
             batch["tracked"],
             gaussians,

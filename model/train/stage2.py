@@ -214,7 +214,7 @@ class OlatFrames:
     def load_batch(
         self, views: list[OlatView], crop_size: int, seed: int, iteration: int
     ) -> dict[str, torch.Tensor]:
-        """image (B, 3, c, c), mask (B, 1, c, c), K (B, 3, 3), w2c (B, 4, 4), light_positions and
+        """image (B, 3, c, c), mask and valid (B, 1, c, c), K (B, 3, 3), w2c (B, 4, 4), light_positions and
         light_intensities (B, Lmax, 3), tracked (B, V, 3), has_mesh (B,), subject_index (B,)."""
         items = [
             random_crop(
@@ -234,6 +234,7 @@ class OlatFrames:
         return {
             "image": batch["image"],
             "mask": batch["mask"],
+            "valid": batch["valid"],
             "K": batch["K"].to(torch.float32),
             "w2c": batch["w2c"].to(torch.float32),
             "light_positions": light_positions,
@@ -406,7 +407,7 @@ class Stage2Trainer:
             compared, image = composite_over_background(
                 render, alpha, image, mask, torch.from_numpy(background)
             )
-            mask = torch.ones_like(mask)
+            mask = batch["valid"]  # the whole crop but the padding past the source image
         normal_lambda = annealed_weight(
             iteration, weights.normal_start, weights.normal_end, self.preset.normal_anneal_iterations
         )
