@@ -21,7 +21,7 @@ from relightanyone.cli_options import (
     workers_option,
 )
 from relightanyone.errors import InputError
-from relightanyone.ingest.records import AdapterOptions, published_test_subjects
+from relightanyone.ingest.records import AdapterOptions, published_splits
 from relightanyone.ingest.registry import ADAPTERS, AdapterSpec, load_adapter
 
 
@@ -102,7 +102,8 @@ def _adapter_command(spec: AdapterSpec, doctor: bool = False) -> click.Command:
         "splits_file",
         type=EXISTING_FILE,
         default=None,
-        help='JSON {"subject": "train"|"test"} of a published protocol; its test subjects are held out.',
+        help='JSON {"subject": "train"|"val"|"test"} of a published protocol: each row gets its '
+        "subject's split (unlisted subjects train); training reads only 'train' rows.",
     )
     @click.option(
         "--all-frames", is_flag=True, help="Every listed frame instead of the neutral one (Ava-256)."
@@ -167,13 +168,15 @@ def _adapter_command(spec: AdapterSpec, doctor: bool = False) -> click.Command:
         from relightanyone.ingest.tracking import TrackingOptions  # imports torch through the calibration
 
         adapter = load_adapter(command_name)
-        held_out = set(test_subjects or ()) | set(published_test_subjects(splits_file) if splits_file else ())
+        published = published_splits(splits_file) if splits_file else {}
+        held_out = set(test_subjects or ()) | {s for s, split in published.items() if split == "test"}
         options = AdapterOptions(
             dataset_name=name,
             subjects=subjects,
             cameras=cameras,
             frames=frames,
             test_subjects=tuple(sorted(held_out)),
+            val_subjects=tuple(sorted(s for s, split in published.items() if split == "val")),
             all_frames=all_frames,
             sequence=sequence,
             sensor_size=sensor_size,

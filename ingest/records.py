@@ -195,6 +195,7 @@ class AdapterOptions:
     cameras: tuple[str, ...] | None = None
     frames: tuple[int, ...] | None = None
     test_subjects: tuple[str, ...] = ()  # subjects written with split "test" (all others "train")
+    val_subjects: tuple[str, ...] = ()  # subjects written with split "val" (model selection, never trained)
     all_frames: bool = (
         False  # datasets with a preferred frame (Ava-256's neutral peak): take every listed frame
     )
@@ -213,15 +214,28 @@ class AdapterOptions:
         return self.frames is None or frame in self.frames
 
     def split_of(self, subject: str) -> str:
-        return "test" if subject in self.test_subjects else "train"
+        if subject in self.test_subjects:
+            return "test"
+        return "val" if subject in self.val_subjects else "train"
 
 
-def published_test_subjects(path: Path) -> tuple[str, ...]:
-    """The held-out subjects of a published protocol file, JSON ``{"subject": "train" | "test"}``, sorted."""
+SPLIT_NAMES = ("train", "val", "test")
+
+
+def published_splits(path: Path) -> dict[str, str]:
+    """A published protocol file, JSON ``{"subject": "train" | "val" | "test"}`` -> {subject: split}.
+
+    Subjects it does not list are training subjects; each split value must be one of :data:`SPLIT_NAMES`.
+    """
     try:
         splits = json.loads(Path(path).read_text())
     except ValueError as error:
         raise InputError(f"{path}: not valid JSON ({error})") from None
-    if not isinstance(splits, dict) or not all(isinstance(v, str) for v in splits.values()):
-        raise InputError(f'{path}: expected a JSON object {{"subject": "train" | "test"}}')
-    return tuple(sorted(subject for subject, split in splits.items() if split == "test"))
+    if not isinstance(splits, dict):
+        raise InputError(f'{path}: expected a JSON object {{"subject": "train" | "val" | "test"}}')
+    unknown = sorted(f"{s}={v!r}" for s, v in splits.items() if v not in SPLIT_NAMES)
+    if unknown:
+        raise InputError(
+            f"{path}: split values must be one of {', '.join(SPLIT_NAMES)}; got {', '.join(unknown[:3])}"
+        )
+    return dict(splits)

@@ -116,10 +116,16 @@ def random_crop(item: dict[str, Any], size: int, rng: np.random.Generator) -> di
     return {**item, **cropped, "K": torch.from_numpy(crop_intrinsics(item["K"].numpy(), box.x0, box.y0))}
 
 
+# At least this share of each subject's cameras trains, whatever the preset asks to hold out: a preset
+# sized for a 40-camera light stage must not leave an 8-camera rig's subject with one training view.
+MIN_TRAINING_CAMERA_SHARE = 0.75
+
+
 def held_out_cameras(cameras: list[str], count: int) -> set[str]:
-    """``count`` cameras spread evenly over the sorted camera names, never all of them."""
+    """``count`` cameras spread evenly over the sorted camera names, capped so that at least
+    :data:`MIN_TRAINING_CAMERA_SHARE` of them train (none held out below four cameras)."""
     ordered = sorted(set(cameras))
-    count = min(count, len(ordered) - 1)
+    count = min(count, int(len(ordered) * (1 - MIN_TRAINING_CAMERA_SHARE) + 1e-9))
     if count <= 0:
         return set()
     step = len(ordered) / count

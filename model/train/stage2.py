@@ -72,7 +72,13 @@ from relightanyone.model.train.losses import (
     weighted_sum,
 )
 from relightanyone.model.train.run import load_run
-from relightanyone.model.train.run_files import CHECKPOINT_NAME, METRICS_NAME, RUN_INFO_NAME
+from relightanyone.model.train.run_files import (
+    CHECKPOINT_NAME,
+    METRICS_NAME,
+    RUN_INFO_NAME,
+    TRAINED_VIEWS_KEY,
+    trained_views,
+)
 from relightanyone.model.train.sampling import (
     CROP_STREAM,
     background_colours,
@@ -180,6 +186,11 @@ class OlatFrames:
             (self.full_on if pattern == FULL_ON_PATTERN else self.olat).append(view)
         if not self.full_on and not self.olat:
             raise InputError(f"{self.path}: no 'full' or 'olat-KKK' training rows")
+
+    def trained_views(self) -> dict[str, list[str]]:
+        """{``<dataset>/<subject>``: cameras} of every training row (full-on and OLAT)."""
+        subjects, cameras = self.rows.column("subject"), self.rows.column("camera")
+        return trained_views((f"{self.name}/{s}", c) for s, c in zip(subjects, cameras, strict=True))
 
     def draw(self, batch_size: int, full_on_fraction: float, seed: int, iteration: int) -> list[OlatView]:
         """The views of one iteration: full-on with probability ``full_on_fraction``, else OLAT (stateless)."""
@@ -531,6 +542,7 @@ class Stage2Trainer:
             "stage1_run": str(Path(self.config.stage1_run).resolve()) if self.config.stage1_run else None,
             "dataset": {"name": self.frames.name, "path": str(self.frames.path.resolve())},
             "subjects": self.frames.subjects,
+            TRAINED_VIEWS_KEY: self.frames.trained_views(),
             "head_centre": self.trainable.head_centre.tolist(),
             "lights": len(self.frames.rig),
             "frames": {"full_on": len(self.frames.full_on), "olat": len(self.frames.olat)},
