@@ -84,6 +84,21 @@ def device_option() -> Decorator:
     )
 
 
+# Arithmetic of the convolutional map networks (mixed precision); everything else stays float32.
+PRECISION_NAMES = ("fp32", "bf16")
+
+
+def precision_option() -> Decorator:
+    return click.option(
+        "--precision",
+        type=click.Choice(PRECISION_NAMES),
+        default="fp32",
+        show_default=True,
+        help="fp32, or bf16: the convolutional map networks run under bfloat16 autocast (per-Gaussian "
+        "maths, rasterization and losses stay float32).",
+    )
+
+
 def quiet_option(help: str = "No progress bars.") -> Decorator:
     return click.option("--quiet", is_flag=True, help=help)
 

@@ -75,7 +75,8 @@ def composite_over_background(
     Gaussians with brightened colours reproduce a flat-lit image; that fog then blurs every relit
     render, because each pixel mixes the shading of surface points centimetres apart.
     """
-    bg = background.to(render.dtype)[:, :, None, None]
+    # The colours are drawn on the host; they follow the render to its device and dtype.
+    bg = background.to(device=render.device, dtype=render.dtype)[:, :, None, None]
     return render + (1.0 - alpha) * bg, target * mask + bg * (1.0 - mask)
 
 

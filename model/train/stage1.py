@@ -28,7 +28,9 @@ import torch.distributed as dist
 from relightanyone.align.colour import linear_to_display
 from relightanyone.errors import InputError
 from relightanyone.format.schema import TEMPLATE_NAME
+from relightanyone.model.device import resolve_device
 from relightanyone.model.networks.gaussians import load_template_binding
+from relightanyone.model.networks.precision import check_precision
 from relightanyone.model.networks.presets import Stage1Preset
 from relightanyone.model.networks.render import comparison_strip, render_gaussians
 from relightanyone.model.networks.stage1 import Stage1Model
@@ -67,6 +69,8 @@ class Stage1Config:
     progress: bool = True
     evaluate: bool = True
     eval_views_per_dataset: int | None = None
+    device: str = "auto"  # a --device value: auto, cpu, cuda, cuda:1, ...
+    precision: str = "fp32"  # fp32, or bf16 for the conv decoders (networks.precision)
     extra_info: dict = field(default_factory=dict)
 
 
@@ -81,19 +85,22 @@ class ProcessGroup:
         return self.rank == 0
 
 
-def setup_process_group() -> ProcessGroup:
-    """Join the torchrun process group when ``WORLD_SIZE`` > 1 (gloo on CPU, NCCL with CUDA)."""
+def setup_process_group(device_name: str = "auto") -> ProcessGroup:
+    """Join the torchrun process group when ``WORLD_SIZE`` > 1 (gloo on CPU, NCCL with CUDA).
+
+    ``device_name`` is a ``--device`` value (:func:`~relightanyone.model.device.resolve_device`); on CUDA
+    under torchrun each process takes the GPU of its ``LOCAL_RANK``.
+    """
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
-    use_cuda = torch.cuda.is_available()
+    device = resolve_device(device_name)
+    use_cuda = device.type == "cuda"
     if world_size > 1 and not dist.is_initialized():
         dist.init_process_group("nccl" if use_cuda else "gloo")
     rank = dist.get_rank() if world_size > 1 else 0
     if use_cuda:
-        local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-        torch.cuda.set_device(local_rank)
-        device = torch.device("cuda", local_rank)
-    else:
-        device = torch.device("cpu")
+        if world_size > 1 or device.index is None:
+            device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        torch.cuda.set_device(device)
     return ProcessGroup(rank=rank, world_size=world_size, device=device)
 
 
@@ -158,12 +165,13 @@ def train_stage1(config: Stage1Config) -> dict:
     """Train (or resume) a stage-1 run; returns the metrics written to ``RUN/metrics.json``."""
     from tqdm import tqdm
 
-    group = setup_process_group()
+    group = setup_process_group(config.device)
     preset = config.preset
     out = Path(config.out)
     data = Stage1Data(config.data, preset.held_out_cameras, apply_learned_colour=not config.warmup)
     torch.manual_seed(config.seed)
     model = build_model(preset, data, config.uncalibrated, data.template_path).to(group.device)
+    model.precision = check_precision(config.precision)
     if group.world_size > 1:  # every process starts from rank 0's weights
         for tensor in list(model.parameters()) + list(model.buffers()):
             dist.broadcast(tensor.data, src=0)

@@ -37,7 +37,9 @@ from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import LIGHTS_NAME, TEMPLATE_NAME, make_mesh_key
 from relightanyone.format.torch_dataset import LEARNED, NormalizedTorchDataset, collate_rows, image_hwc
+from relightanyone.model.device import resolve_device
 from relightanyone.model.networks.gaussians import load_template_binding
+from relightanyone.model.networks.precision import check_precision
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
 from relightanyone.model.networks.reflectance import (
     FULL_ON_PATTERN,
@@ -104,6 +106,9 @@ class Stage2Config:
     seed: int = 0
     resume: bool = True
     progress: bool = True
+    device: str = "auto"  # a --device value: auto, cpu, cuda, cuda:1, ...
+    precision: str = "fp32"  # fp32, or bf16 for the trained conv networks (networks.precision)
+    checkpoint_maps: bool = False  # recompute the trained networks' map activations in the backward pass
     extra_info: dict = field(default_factory=dict)
 
 
@@ -239,12 +244,14 @@ class Stage2Trainer:
     def __init__(self, config: Stage2Config) -> None:
         self.config = config
         self.preset = config.preset
-        self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        self.device = resolve_device(config.device)
         torch.manual_seed(config.seed)
         if config.single_stage:
             self._build_single_stage()
         else:
             self._build_stage2()
+        self.trainable.precision = check_precision(config.precision)
+        self.trainable.checkpoint_maps = config.checkpoint_maps
         self.optimizer = torch.optim.Adam(self.trainable.parameters(), lr=self.preset.learning_rate)
         self.start = 0
 
