@@ -646,6 +646,49 @@ def _load_avatar(path: Path, device: str):
     return avatar, source
 
 
+@click.command("plan")
+@preset_option("paper", "Preset of stage 1 and stage 2 (sizes and batch).")
+@click.option(
+    "--batch-size", type=click.IntRange(min=1), default=None, help="Override the presets' batch size."
+)
+@click.option("--crop", type=click.IntRange(min=8), default=None, help="Override the presets' crop size.")
+@click.option(
+    "--lights",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Lights of the OLAT rig (default: those of --data when given, else 150).",
+)
+@click.option(
+    "--data",
+    type=EXISTING_FOLDER,
+    default=None,
+    help="A normalized dataset: its template mesh sets the Gaussians, its rig the lights.",
+)
+@click.option("--json", "json_path", type=ANY_PATH, default=None, help="Also write the plan as JSON here.")
+def plan_command(preset, batch_size, crop, lights, data, json_path) -> None:
+    """Estimate peak memory per GPU of stage 1, stage 2, the single-stage baseline and fitting, and
+    propose batch, accumulation, precision and checkpointing that fit 24, 48 and 80 GB GPUs.
+
+    Nothing is allocated: the networks are traced on torch's meta device.
+
+    Example: relightanyone plan --preset paper --data out/faceolat
+    """
+    from relightanyone.model.train.plan import DEFAULT_RIG_LIGHTS, PlanRequest, format_plan, memory_plan
+
+    template = None
+    if data is not None:
+        from relightanyone.format.reader import NormalizedDataset
+        from relightanyone.format.schema import TEMPLATE_NAME
+
+        template = data / TEMPLATE_NAME if (data / TEMPLATE_NAME).is_file() else None
+        lights = lights or len(NormalizedDataset(data).lights()) or None
+    request = PlanRequest(preset, batch_size, crop, lights or DEFAULT_RIG_LIGHTS, template=template)
+    plan = memory_plan(request)
+    click.echo(format_plan(plan))
+    if json_path is not None:
+        Path(json_path).write_text(json.dumps(plan, indent=2) + "\n")
+
+
 COMMANDS: dict[str, click.Command] = {
     "align-colour": align_colour_command,
     "train": train_group,
@@ -653,4 +696,5 @@ COMMANDS: dict[str, click.Command] = {
     "fit": fit_command,
     "relight": relight_command,
     "export": export_command,
+    "plan": plan_command,
 }

@@ -45,6 +45,7 @@ COMMAND_ORDER = (
     "fit",
     "relight",
     "export",
+    "plan",
     "expand",
     "evaluate",
     "report",

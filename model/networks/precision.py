@@ -13,6 +13,7 @@ recomputes them in the backward pass: the same gradients, for about one more for
 from __future__ import annotations
 
 from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 
 import torch
 from torch.utils.checkpoint import checkpoint
@@ -26,11 +27,12 @@ def check_precision(precision: str) -> str:
     return precision
 
 
-def map_autocast(device: torch.device, precision: str) -> torch.autocast:
-    """bfloat16 autocast on ``device`` when ``precision`` is ``bf16``; a no-op context for ``fp32``."""
-    return torch.autocast(
-        device_type=device.type, dtype=torch.bfloat16, enabled=check_precision(precision) == "bf16"
-    )
+def map_autocast(device: torch.device, precision: str) -> AbstractContextManager:
+    """bfloat16 autocast on ``device`` when ``precision`` is ``bf16``; a no-op context for ``fp32`` and on
+    the meta device (shapes only: memory estimates count its maps at bfloat16 size themselves)."""
+    if check_precision(precision) == "fp32" or device.type == "meta":
+        return nullcontext()
+    return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
 
 
 def run_maps(

@@ -43,7 +43,7 @@ from relightanyone.model.train.checkpoint import (
 from relightanyone.model.train.data import Stage1Data
 from relightanyone.model.train.held_out import evaluate_held_out
 from relightanyone.model.train.losses import composite_over_background, offset_weight, stage1_loss
-from relightanyone.model.train.memory import estimate_training_memory, format_memory
+from relightanyone.model.train.memory import StepShape, estimate_stage1, format_memory
 from relightanyone.model.train.run_files import CHECKPOINT_NAME, METRICS_NAME, RUN_INFO_NAME
 from relightanyone.model.train.sampling import background_colours, balanced_batch
 
@@ -196,7 +196,8 @@ def train_stage1(config: Stage1Config) -> dict:
             f"{len(data.names)} datasets, {model.gaussian_count} Gaussians per subject, "
             f"{parameter_count / 1e6:.2f} M parameters, {group.world_size} process(es)"
         )
-        print(format_memory(estimate_training_memory(preset, parameter_count, model.gaussian_count)))
+        shape = StepShape(preset.batch_size, preset.crop_size)
+        print(format_memory(estimate_stage1(model, shape, config.precision)))
         if start:
             print(f"resuming {checkpoint_path} at iteration {start}")
 
