@@ -42,13 +42,13 @@ def sphere(tmp_path_factory):
     return torch.as_tensor(mesh.vertices, dtype=torch.float32), binding, preset
 
 
-def _models(sphere):
+def _models(sphere, device: str = "cpu"):
     vertices, binding, preset = sphere
     torch.manual_seed(0)
     stage1 = Stage1Model(preset, vertices, binding, subject_count=2, dataset_count=1)
     centre, radius = head_frame(vertices)
     stage2 = Stage2Model(binding, centre, radius, sh_order=2, base_channels=8, max_channels=32)
-    return stage1, stage2
+    return stage1.to(device), stage2.to(device)
 
 
 def _cameras(count: int):
@@ -66,8 +66,9 @@ def _relit_step(stage1, stage2, precision: str, checkpointed: bool = False):
     Returns (loss, relit colours (B, N, 3), gradients of the UNet's parameters)."""
     stage1.precision = stage2.precision = precision
     stage2.checkpoint_maps = checkpointed
-    K, w2c = _cameras(2)
-    subjects = torch.tensor([0, 1])
+    device = stage2.head_centre.device
+    K, w2c = (tensor.to(device) for tensor in _cameras(2))
+    subjects = torch.tensor([0, 1], device=device)
     vertices, gaussians = stage1(subjects, torch.zeros_like(subjects))
     cameras = camera_centres(w2c)
     params = stage2(gaussians.colours, gaussians.means, texel_mesh_normals(vertices, stage1.binding), cameras)
@@ -91,14 +92,19 @@ def _relative(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).norm() / b.norm().clamp(min=1e-12))
 
 
-def test_bf16_agrees_with_fp32(sphere):
-    stage1, stage2 = _models(sphere)
+def check_bf16_agrees_with_fp32(sphere, device: str) -> None:
+    """The relit step in bf16 and in fp32 on ``device``: loss and colours within the bounds."""
+    stage1, stage2 = _models(sphere, device)
     loss32, colours32, _ = _relit_step(stage1, stage2, "fp32")
     loss16, colours16, _ = _relit_step(stage1, stage2, "bf16")
     assert colours16.dtype == torch.float32  # the maps leave autocast as float32
     assert abs(float(loss16 - loss32)) / float(loss32) < LOSS_RELATIVE_BOUND
     assert _relative(colours16, colours32) < OUTPUT_RELATIVE_BOUND
     assert not torch.equal(colours16, colours32)  # bf16 really ran
+
+
+def test_bf16_agrees_with_fp32(sphere):
+    check_bf16_agrees_with_fp32(sphere, "cpu")
 
 
 def test_checkpointed_maps_give_the_same_gradients(sphere):

@@ -438,39 +438,41 @@ def _measured_step(loss_fn: Callable[[], torch.Tensor], trained: torch.nn.Module
     return _resident_bytes(optimizer, trained, *frozen) + measure_peak_bytes(step)
 
 
-def measured_stage1(model: Stage1Model, shape: StepShape) -> int:
-    """Measured peak bytes of one stage-1 training step of ``model`` on the CPU (ring cameras)."""
-    K, w2c = ring_cameras(shape.batch, shape.crop)
-    index = torch.zeros(shape.batch, dtype=torch.long)
+def stage1_step_loss(model: Stage1Model, shape: StepShape) -> Callable[[], torch.Tensor]:
+    """The loss of a stage-1 training step of ``model`` on synthetic inputs (ring cameras, grey targets)
+    on the model's device: what :func:`measured_stage1` measures and ``bench/gpu.py`` times."""
+    device = model.identity_codes.device
+    K, w2c = (tensor.to(device) for tensor in ring_cameras(shape.batch, shape.crop))
+    index = torch.zeros(shape.batch, dtype=torch.long, device=device)
     tracked = model.mesh_decoder.template_vertices.expand(shape.batch, -1, -1)
+    background = torch.rand(shape.batch, 3, device=device)
 
     def loss() -> torch.Tensor:
         vertices, gaussians = model(index, index)
         render, alpha = render_gaussians(gaussians, K, w2c, shape.crop, shape.crop)
         image = torch.full_like(render, 0.5)
-        composited, target = composite_over_background(
-            render, alpha, image, alpha.detach(), torch.rand(shape.batch, 3)
-        )
+        composited, target = composite_over_background(render, alpha, image, alpha.detach(), background)
         ones = torch.ones_like(alpha)
-        geometry = geometry_terms(vertices, tracked, gaussians)
-        return (
-            10 * masked_l1(composited, target, ones)
-            + 0.2 * ssim_loss(composited, target, ones)
-            + sum(geometry.values())
-        ).mean()
+        image_terms = 10 * masked_l1(composited, target, ones) + 0.2 * ssim_loss(composited, target, ones)
+        return (image_terms + sum(geometry_terms(vertices, tracked, gaussians).values())).mean()
 
-    return _measured_step(loss, model)
+    return loss
 
 
-def measured_stage2(stage1: Stage1Model, stage2: Stage2Model, shape: StepShape) -> int:
-    """Measured peak bytes of one stage-2 training step on the CPU (``stage1`` frozen, ring cameras,
-    ``shape.lights`` lights per sample)."""
+def stage2_step_loss(
+    stage1: Stage1Model, stage2: Stage2Model, shape: StepShape
+) -> Callable[[], torch.Tensor]:
+    """The loss of a stage-2 training step (``stage1`` frozen, ``shape.lights`` lights per sample) on
+    synthetic inputs on the networks' device; see :func:`stage1_step_loss`."""
+    device = stage2.head_centre.device
     stage1.eval().requires_grad_(False)
-    K, w2c = ring_cameras(shape.batch, shape.crop)
-    index = torch.zeros(shape.batch, dtype=torch.long)
+    K, w2c = (tensor.to(device) for tensor in ring_cameras(shape.batch, shape.crop))
+    index = torch.zeros(shape.batch, dtype=torch.long, device=device)
     cameras = camera_centres(w2c)
     rig = PointLights(torch.randn(shape.lights, 3), torch.rand(shape.lights, 3))
-    positions, intensities = batch_lights(rig, [list(range(shape.lights))] * shape.batch)
+    positions, intensities = (
+        t.to(device) for t in batch_lights(rig, [list(range(shape.lights))] * shape.batch)
+    )
 
     def loss() -> torch.Tensor:
         with torch.no_grad():
@@ -481,9 +483,17 @@ def measured_stage2(stage1: Stage1Model, stage2: Stage2Model, shape: StepShape) 
         render, alpha = render_gaussians(
             dataclasses.replace(gaussians, colours=relit.colour), K, w2c, shape.crop, shape.crop
         )
-        image = torch.full_like(render, 0.5)
-        return (
-            10 * masked_l1(render, image, alpha.detach()) + 0.2 * ssim_loss(render, image, alpha.detach())
-        ).mean()
+        image, mask = torch.full_like(render, 0.5), alpha.detach()
+        return (10 * masked_l1(render, image, mask) + 0.2 * ssim_loss(render, image, mask)).mean()
 
-    return _measured_step(loss, stage2, stage1)
+    return loss
+
+
+def measured_stage1(model: Stage1Model, shape: StepShape) -> int:
+    """Measured peak bytes of one stage-1 training step of ``model`` on the CPU (:func:`stage1_step_loss`)."""
+    return _measured_step(stage1_step_loss(model, shape), model)
+
+
+def measured_stage2(stage1: Stage1Model, stage2: Stage2Model, shape: StepShape) -> int:
+    """Measured peak bytes of one stage-2 training step on the CPU (:func:`stage2_step_loss`)."""
+    return _measured_step(stage2_step_loss(stage1, stage2, shape), stage2, stage1)
