@@ -18,6 +18,7 @@ from relightanyone.cli_options import (
     ANY_PATH,
     EXISTING_FOLDER,
     device_option,
+    loader_workers_option,
     options,
     out_option,
     parsed_by,
@@ -131,6 +132,7 @@ def train_group() -> None:
 @threads_option()
 @device_option()
 @precision_option()
+@loader_workers_option()
 def train_stage1_command(
     data,
     preset,
@@ -146,6 +148,7 @@ def train_stage1_command(
     threads,
     device,
     precision,
+    loader_workers,
 ) -> None:
     """Train stage 1 on one or more normalized datasets.
 
@@ -183,6 +186,7 @@ def train_stage1_command(
         eval_views_per_dataset=eval_views,
         device=device,
         precision=precision,
+        loader_workers=loader_workers,
     )
     metrics = train_stage1(config)
     for name, values in (metrics.get("held_out") or {}).items():
@@ -226,6 +230,7 @@ def train_stage1_command(
     help="Recompute the trained networks' UV-map activations in the backward pass (less memory, ~1 more "
     "forward pass of those networks per step; the same gradients).",
 )
+@loader_workers_option()
 def train_stage2_command(
     data,
     stage1_run,
@@ -240,6 +245,7 @@ def train_stage2_command(
     device,
     precision,
     checkpoint_maps,
+    loader_workers,
 ) -> None:
     """Train stage 2 (relighting UNet on a frozen stage-1 run) or the single-stage baseline.
 
@@ -265,6 +271,7 @@ def train_stage2_command(
         device=device,
         precision=precision,
         checkpoint_maps=checkpoint_maps,
+        loader_workers=loader_workers,
     )
     metrics = train_stage2(config)
     last = metrics.get("last_losses") or {}

@@ -99,6 +99,16 @@ def precision_option() -> Decorator:
     )
 
 
+def loader_workers_option() -> Decorator:
+    return click.option(
+        "--loader-workers",
+        type=click.IntRange(min=0),
+        default=None,
+        help="Processes that make the next training batches during a step (default: 0 on the CPU, up to 4 "
+        "with CUDA). Batches depend on the iteration alone, so the weights do not depend on this.",
+    )
+
+
 def quiet_option(help: str = "No progress bars.") -> Decorator:
     return click.option("--quiet", is_flag=True, help=help)
 

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import torch
 
-from relightanyone.model.networks.gaussians import TexelBinding
 from relightanyone.model.networks.precision import run_maps
 from relightanyone.model.networks.reflectance import camera_centres, relight
 from relightanyone.model.networks.render import render_gaussians
@@ -14,7 +13,6 @@ from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.networks.stage2 import Stage2Model, head_frame, texel_mesh_normals
 from relightanyone.model.train.losses import masked_l1, ssim_loss
 from relightanyone.render.camera import look_at_w2c
-from relightanyone.render.uv_binding import UVBinding
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -28,18 +26,11 @@ OUTPUT_RELATIVE_BOUND = 0.02
 
 @pytest.fixture(scope="module")
 def sphere(tmp_path_factory):
-    """Template vertices (V, 3) and the texel binding of a UV sphere at UV 32²."""
-    from helpers.stage1_world import sphere_obj, tiny_stage1_preset
+    """Template vertices (V, 3), the texel binding of a UV sphere at UV 32² and a stage-1 preset for it."""
+    from helpers.stage1_world import sphere_template_binding, tiny_stage1_preset
 
-    from relightanyone.render.mesh import load_obj
-
-    path = tmp_path_factory.mktemp("sphere") / "template.obj"
-    path.write_text(sphere_obj()[1])
-    mesh = load_obj(path)
-    uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, UV_SIZE)
-    binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
-    preset = tiny_stage1_preset(uv_size=UV_SIZE, start_channels=32, min_channels=8)
-    return torch.as_tensor(mesh.vertices, dtype=torch.float32), binding, preset
+    vertices, binding = sphere_template_binding(tmp_path_factory.mktemp("sphere"), UV_SIZE)
+    return vertices, binding, tiny_stage1_preset(uv_size=UV_SIZE, start_channels=32, min_channels=8)
 
 
 def _models(sphere, device: str = "cpu"):
