@@ -15,6 +15,7 @@ all processes keep identical weights. Only rank 0 writes files.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
@@ -30,6 +31,7 @@ from relightanyone.align.colour import linear_to_display
 from relightanyone.errors import InputError
 from relightanyone.format.schema import TEMPLATE_NAME
 from relightanyone.format.torch_dataset import iteration_loader
+from relightanyone.locking import output_lock
 from relightanyone.model.device import loader_workers, resolve_device
 from relightanyone.model.networks.gaussians import load_template_binding
 from relightanyone.model.networks.precision import check_precision
@@ -53,6 +55,7 @@ from relightanyone.model.train.losses import (
 from relightanyone.model.train.memory import StepShape, estimate_stage1, format_memory
 from relightanyone.model.train.run_files import CHECKPOINT_NAME, METRICS_NAME, RUN_INFO_NAME
 from relightanyone.model.train.sampling import background_colours, balanced_batch
+from relightanyone.progress import progress_bar
 
 # Fields that shape the network: a checkpoint can only resume a run that agrees on all of them.
 ARCHITECTURE_FIELDS = ("uv_size", "z_id_dim", "z_l_dim", "start_channels", "min_channels", "mesh_hidden")
@@ -186,10 +189,17 @@ def _write_json(path: Path, payload: dict) -> None:
 
 
 def train_stage1(config: Stage1Config) -> dict:
-    """Train (or resume) a stage-1 run; returns the metrics written to ``RUN/metrics.json``."""
-    from tqdm import tqdm
+    """Train (or resume) a stage-1 run; returns the metrics written to ``RUN/metrics.json``.
 
+    The process that writes the run folder (rank 0) holds its lock (:mod:`relightanyone.locking`) for the
+    whole run, so a second run into the same folder stops at once.
+    """
     group = setup_process_group(config.device)
+    with output_lock(config.out) if group.is_main else contextlib.nullcontext():
+        return _train_stage1(config, group)
+
+
+def _train_stage1(config: Stage1Config, group: ProcessGroup) -> dict:
     preset = config.preset
     out = Path(config.out)
     data = Stage1Data(config.data, preset.held_out_cameras, apply_learned_colour=not config.warmup)
@@ -233,13 +243,12 @@ def train_stage1(config: Stage1Config) -> dict:
     use_lighting = not config.warmup
     global_batch = preset.batch_size * group.world_size
     first_sample = group.rank * preset.batch_size
-    progress = tqdm(
+    progress = progress_bar(
         total=preset.iterations,
         initial=start,
         disable=not (config.progress and group.is_main),
         desc="stage1 warm-up" if config.warmup else "stage1",
         unit="it",
-        dynamic_ncols=True,
     )
     step_seconds = 0.0
     steps = 0

@@ -44,6 +44,7 @@ from relightanyone.format.torch_dataset import (
     image_hwc,
     iteration_loader,
 )
+from relightanyone.locking import output_lock
 from relightanyone.model.device import loader_workers, resolve_device
 from relightanyone.model.networks.gaussians import load_template_binding
 from relightanyone.model.networks.precision import check_precision
@@ -89,6 +90,7 @@ from relightanyone.model.train.sampling import (
     iteration_generator,
     random_crop,
 )
+from relightanyone.progress import progress_bar
 from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
 from relightanyone.render.sh import lambertian_transfer
 from relightanyone.render.shading import point_light_sh
@@ -485,7 +487,6 @@ class Stage2Trainer:
     def train(self) -> dict:
         """Train (or resume) to ``preset.iterations``; returns the metrics written to ``metrics.json``."""
         from torch.utils.tensorboard import SummaryWriter
-        from tqdm import tqdm
 
         out = Path(self.config.out)
         self.resume_if_possible()
@@ -495,13 +496,12 @@ class Stage2Trainer:
         writer = SummaryWriter(str(out / "tensorboard"), purge_step=self.start)
         self.trainable.train()
         mode = "single-stage" if self.config.single_stage else "stage2"
-        progress = tqdm(
+        progress = progress_bar(
             total=self.preset.iterations,
             initial=self.start,
             disable=not self.config.progress,
             desc=mode,
             unit="it",
-            dynamic_ncols=True,
         )
         first = last = None
         steps = 0
@@ -583,8 +583,10 @@ def olat_batch(
 
 
 def train_stage2(config: Stage2Config) -> dict:
-    """Train a stage-2 (or, with ``single_stage``, a single-stage baseline) run; returns its metrics."""
-    return Stage2Trainer(config).train()
+    """Train a stage-2 (or, with ``single_stage``, a single-stage baseline) run; returns its metrics. The
+    run folder is locked for the whole run (:mod:`relightanyone.locking`)."""
+    with output_lock(config.out):
+        return Stage2Trainer(config).train()
 
 
 def _write_json(path: Path, payload: dict) -> None:
