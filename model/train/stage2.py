@@ -121,6 +121,7 @@ class Stage2Config:
     precision: str = "fp32"  # fp32, or bf16 for the trained conv networks (networks.precision)
     checkpoint_maps: bool = False  # recompute the trained networks' map activations in the backward pass
     loader_workers: int | None = None  # batch loader processes (None: device.loader_workers' default)
+    accumulation: int = 1  # micro-batches per step: the batch's gradient, accumulated in parts
     extra_info: dict = field(default_factory=dict)
 
 
@@ -394,7 +395,7 @@ class Stage2Trainer:
         )
 
     def loss(
-        self, batch: dict[str, torch.Tensor], iteration: int
+        self, batch: dict[str, torch.Tensor], iteration: int, first_sample: int = 0
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor | float], torch.Tensor]:
         """Total loss (mean over samples), its unweighted terms (batch means as detached 0-d tensors, read
         only when logged; plus the weights and ``total``), the render."""
@@ -417,7 +418,7 @@ class Stage2Trainer:
         )
         compared, image, mask = render, batch["image"], batch["mask"]
         if self.config.single_stage:  # its geometry trains: coverage counts, as in stage 1
-            background = background_colours(self.config.seed, iteration, 0, render.shape[0])
+            background = background_colours(self.config.seed, iteration, first_sample, render.shape[0])
             compared, image = composite_over_background(
                 render, alpha, image, mask, torch.from_numpy(background)
             )
@@ -462,6 +463,21 @@ class Stage2Trainer:
         logged.update(batch_means(terms))
         logged["total"] = total.detach()
         return total, logged, render
+
+    def accumulate(self, batch: dict[str, torch.Tensor], iteration: int) -> dict[str, torch.Tensor | float]:
+        """Back-propagate the batch's loss in ``config.accumulation`` micro-batches (each loss weighted by its
+        share of the samples, so the summed gradient is the whole batch's); returns the batch's terms."""
+        size = batch["image"].shape[0]
+        parts = max(1, min(self.config.accumulation, size))
+        bounds = [round(size * k / parts) for k in range(parts + 1)]
+        terms: dict[str, torch.Tensor | float] = {}
+        for begin, end in zip(bounds[:-1], bounds[1:], strict=True):
+            share = (end - begin) / size
+            total, part_terms, _ = self.loss({k: v[begin:end] for k, v in batch.items()}, iteration, begin)
+            (total * share).backward()
+            for name, value in part_terms.items():
+                terms[name] = value if name.endswith("_lambda") else terms.get(name, 0.0) + value * share
+        return terms
 
     def resume_if_possible(self) -> None:
         path = Path(self.config.out) / CHECKPOINT_NAME
@@ -513,9 +529,8 @@ class Stage2Trainer:
         for iteration in range(self.start, self.preset.iterations):
             began = time.perf_counter()
             batch = {k: v.to(self.device, non_blocking=on_gpu) for k, v in next(batches).items()}
-            total, terms, _ = self.loss(batch, iteration)
             self.optimizer.zero_grad(set_to_none=True)
-            total.backward()
+            terms = self.accumulate(batch, iteration)
             self.optimizer.step()
             seconds += time.perf_counter() - began
             first, last, steps = first or terms, terms, steps + 1
