@@ -14,6 +14,7 @@ from typing import Any
 
 import click
 
+from relightanyone.os_errors import OUTPUT_META_KEY, check_writable
 from relightanyone.parallel import EXECUTORS
 
 # The size presets of ingest (crop size) and of the model (network size and schedule).
@@ -56,10 +57,24 @@ def names_option(name: str, help: str, metavar: str = "A,B") -> Decorator:
 
 
 def out_option(help: str, *, file: bool = False, required: bool = True, dest: str | None = None) -> Decorator:
-    """``--out``: the folder (or, with ``file``, the file) a command writes."""
+    """``--out``: the folder (or, with ``file``, the file) a command writes. It is probed while the command
+    line is parsed (:func:`check_writable`), so a read-only or unwritable place stops the command before it
+    plans anything, and it is recorded for the error boundary (an OS error that names no file)."""
     declarations = ("--out", dest) if dest else ("--out",)
+
+    def writable(ctx: click.Context, param: click.Parameter, value: Path | None) -> Path | None:
+        if value is not None and not ctx.resilient_parsing:
+            ctx.meta[OUTPUT_META_KEY] = value
+            check_writable(value.parent if file else value)
+        return value
+
     return click.option(
-        *declarations, type=FILE if file else FOLDER, required=required, default=None, help=help
+        *declarations,
+        type=FILE if file else FOLDER,
+        required=required,
+        default=None,
+        callback=writable,
+        help=help,
     )
 
 
@@ -82,6 +97,31 @@ def device_option() -> Decorator:
         default="auto",
         show_default=True,
         help="Torch device: auto (CUDA when available, else CPU), cpu, cuda, cuda:1, ...",
+    )
+
+
+# Arithmetic of the convolutional map networks (mixed precision); everything else stays float32.
+PRECISION_NAMES = ("fp32", "bf16")
+
+
+def precision_option() -> Decorator:
+    return click.option(
+        "--precision",
+        type=click.Choice(PRECISION_NAMES),
+        default="fp32",
+        show_default=True,
+        help="fp32, or bf16: the convolutional map networks run under bfloat16 autocast (per-Gaussian "
+        "maths, rasterization and losses stay float32).",
+    )
+
+
+def loader_workers_option() -> Decorator:
+    return click.option(
+        "--loader-workers",
+        type=click.IntRange(min=0),
+        default=None,
+        help="Processes that make the next training batches during a step (default: 0 on the CPU, up to 4 "
+        "with CUDA). Batches depend on the iteration alone, so the weights do not depend on this.",
     )
 
 

@@ -104,7 +104,7 @@ def test_shards_open_with_plain_pyarrow_and_hugging_face(tmp_path):
     shard = dataset_dir / "images-00000.arrow"
     table = pa.ipc.open_stream(pa.memory_map(str(shard))).read_all()
     assert table.schema.equals(IMAGE_SCHEMA, check_metadata=True) and table.num_rows == 12
-    assert table.schema.metadata[b"schema_version"] == b"1"
+    assert table.schema.metadata[b"schema_version"] == b"2"
     hf = datasets.Dataset.from_file(str(shard))
     assert hf.num_rows == 12 and hf[3]["key"] == table.column("key")[3].as_py()
     first = hf[0]
@@ -177,6 +177,9 @@ def test_parts_from_worker_processes_give_the_bytes_of_a_sequential_run(tmp_path
             context = multiprocessing.get_context("fork")
             with concurrent.futures.ProcessPoolExecutor(2, mp_context=context) as pool:
                 assert sorted(pool.map(_write_task, [writer] * 4, reversed(subjects))) == list(subjects)
+            assert not any(writer.has_part(s) for s in subjects)  # only this process publishes
+            for subject in subjects:
+                writer.publish(subject)
         else:
             for subject in subjects:
                 _write_task(writer, subject)

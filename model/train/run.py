@@ -24,6 +24,7 @@ from relightanyone.model.networks.render import grid, orbit_cameras, render_view
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
+from relightanyone.progress import progress_bar
 
 FOREGROUND_ALPHA = 0.5
 LIGHTING_GRID_NAME = "lighting_grid.png"
@@ -33,7 +34,7 @@ ORBIT_ELEVATION_DEG = 10.0
 
 @dataclass
 class Stage1Run:
-    """A trained run: the model (eval mode, CPU) and what it was trained on."""
+    """A trained run: the model (eval mode, on the device it was loaded to) and what it was trained on."""
 
     path: Path
     model: Stage1Model
@@ -62,8 +63,8 @@ class Stage1Run:
         return self.datasets.index(name)
 
 
-def load_run(run_dir: Path) -> Stage1Run:
-    """Rebuild the model of ``run_dir`` from its checkpoint, run.json and template copy."""
+def load_run(run_dir: Path, device: torch.device | str = "cpu") -> Stage1Run:
+    """Rebuild the model of ``run_dir`` from its checkpoint, run.json and template copy, on ``device``."""
 
     run_dir = Path(run_dir)
     info_path = run_dir / RUN_INFO_NAME
@@ -79,7 +80,7 @@ def load_run(run_dir: Path) -> Stage1Run:
         preset, template_vertices, binding, len(checkpoint["subjects"]), len(checkpoint["datasets"])
     )
     model.load_state_dict(checkpoint["model"])
-    model.eval()
+    model.to(device).eval()
     return Stage1Run(
         path=run_dir,
         model=model,
@@ -118,8 +119,11 @@ def subject_cameras(
 
 @torch.no_grad()
 def decode(run: Stage1Run, subject_index: int, lighting_index: int) -> Gaussians:
+    device = run.model.identity_codes.device
     _, gaussians = run.model(
-        torch.tensor([subject_index]), torch.tensor([lighting_index]), use_lighting=run.use_lighting
+        torch.tensor([subject_index], device=device),
+        torch.tensor([lighting_index], device=device),
+        use_lighting=run.use_lighting,
     )
     return gaussians
 
@@ -132,18 +136,22 @@ def same_geometry(a: Gaussians, b: Gaussians) -> bool:
 def mean_foreground_colour(images: torch.Tensor, alphas: torch.Tensor) -> np.ndarray:
     """Mean linear RGB over pixels with alpha > 0.5: images (C, 3, H, W), alphas (C, 1, H, W) -> (3,)."""
     weight = (alphas > FOREGROUND_ALPHA).float()
-    return ((images * weight).sum(dim=(0, 2, 3)) / weight.sum().clamp(min=1.0)).numpy()
+    return ((images * weight).sum(dim=(0, 2, 3)) / weight.sum().clamp(min=1.0)).cpu().numpy()
 
 
 @torch.no_grad()
 def render_with_alpha(gaussians: Gaussians, K: np.ndarray, w2c: np.ndarray, width: int, height: int):
     """Render one Gaussian set into C cameras given as numpy K (C, 3, 3) and w2c (C, 4, 4).
 
-    Returns images (C, 3, H, W) and alphas (C, 1, H, W).
+    Returns images (C, 3, H, W) and alphas (C, 1, H, W), on the Gaussians' device.
     """
-
+    device = gaussians.means.device
     return render_views(
-        gaussians, torch.tensor(K, dtype=torch.float32), torch.tensor(w2c, dtype=torch.float32), width, height
+        gaussians,
+        torch.tensor(K, dtype=torch.float32, device=device),
+        torch.tensor(w2c, dtype=torch.float32, device=device),
+        width,
+        height,
     )
 
 
@@ -160,8 +168,6 @@ def render_subject(
     Returns a report: files, and when the lighting code is swapped, the mean foreground colour under
     both codes, their difference, and whether the geometry stayed identical.
     """
-    from tqdm import tqdm
-
     subject_index = run.subject_index(subject)
     own_dataset = run.subjects[subject_index].split("/", 1)[0]
     lighting = lighting_code or own_dataset
@@ -180,7 +186,7 @@ def render_subject(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     images, alphas = [], []
-    for index in tqdm(range(len(names)), desc=f"render {run.subjects[subject_index]}", unit="view"):
+    for index in progress_bar(range(len(names)), desc=f"render {run.subjects[subject_index]}", unit="view"):
         image, alpha = render_with_alpha(
             gaussians, K[index : index + 1], w2c[index : index + 1], width, height
         )
@@ -231,11 +237,9 @@ def colour_shift_report(
 def lighting_alignment_grid(run: Stage1Run, out_path: Path) -> dict:
     """One training subject per dataset (rows) rendered under every dataset's lighting code (columns),
     from the subject's first dataset camera, into one PNG. Returns the colour shifts measured."""
-    from tqdm import tqdm
-
     rows, shifts = [], {}
     size = None
-    for dataset in tqdm(run.datasets, desc="lighting grid", unit="subject"):
+    for dataset in progress_bar(run.datasets, desc="lighting grid", unit="subject"):
         subject_index = next(i for i, s in enumerate(run.subjects) if s.split("/", 1)[0] == dataset)
         _, K, w2c, width, height = subject_cameras(run, subject_index, limit=1)
         own = decode(run, subject_index, run.dataset_index(dataset))
@@ -284,11 +288,12 @@ def render_run(
     cameras: str = "dataset",
     orbit_count: int = 8,
     lighting_grid: bool = False,
+    device: torch.device | str = "cpu",
 ) -> dict:
     """What ``relightanyone render stage1`` writes into ``out``: ``subject``'s PNGs
     (:func:`render_subject`), with ``lighting_grid`` also ``lighting_grid.png``
     (:func:`lighting_alignment_grid`), and ``render_report.json``, the reports it returns."""
-    run = load_run(run_dir)
+    run = load_run(run_dir, device)
     out = Path(out)
     reports = {}
     if subject is not None:

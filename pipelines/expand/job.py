@@ -24,8 +24,6 @@ from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
 
-from tqdm import tqdm
-
 from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import (
@@ -34,6 +32,7 @@ from relightanyone.format.schema import (
     DatasetInfo,
     LightRow,
     Manifest,
+    check_name,
     fingerprint_config,
 )
 from relightanyone.format.shards import ShardWriter
@@ -50,6 +49,7 @@ from relightanyone.pipelines.expand.inputs import (
 )
 from relightanyone.pipelines.expand.render import envmap_pattern
 from relightanyone.pipelines.expand.task import run_expand_task
+from relightanyone.progress import progress_bar
 
 TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 # What the local pool's server imports once, so each forked worker starts with them loaded.
@@ -175,9 +175,9 @@ def plan_expansion(
     """Check the inputs (loading both runs together once) and list the tasks; renders nothing."""
 
     source_data = NormalizedDataset(source)
-    name = name or f"{source_data.name}-olat"
-    if not name or "/" in name:
-        raise InputError(f"--name {name!r} must be a non-empty folder name without '/'")
+    name = check_name(name or f"{source_data.name}-olat", "dataset", "expand --name")
+    for envmap in envmaps or []:
+        check_name(envmap_pattern(Path(envmap)), "pattern", str(envmap))
     if min(fit_iterations) < 0:
         raise InputError(f"--fit-iterations must be >= 0, got {fit_iterations}")
     envmaps = [Path(p) for p in envmaps or []]
@@ -212,6 +212,10 @@ def plan_expansion(
         raise InputError(
             f"{source_data.path}: no full-on rows of subjects {missing}; it has {', '.join(available[:20])}"
         )
+    resolved_device = str(resolve_device(device))
+    # An unknown subject is fitted on the device it is rendered on; a CUDA fit differs from a CPU one in
+    # the last bits, so its avatar is not reused across the two.
+    fit_device = {"device": "cuda"} if resolved_device.startswith("cuda") else {}
     tasks = []
     for subject in wanted:
         rows = [i for i in full_rows if columns["subject"][i] == subject]
@@ -244,6 +248,7 @@ def plan_expansion(
                         "fit_iterations": list(fit_iterations),
                         "fit_image_scale": fit_image_scale,
                         "seed": seed,
+                        **fit_device,
                     }
                 ),
             )
@@ -265,7 +270,7 @@ def plan_expansion(
         fit_iterations=(int(fit_iterations[0]), int(fit_iterations[1])),
         fit_image_scale=float(fit_image_scale),
         all_frames=all_frames,
-        device=str(resolve_device(device)),
+        device=resolved_device,
         seed=int(seed),
         lightings_per_pass=int(lightings_per_pass),
     )
@@ -346,18 +351,28 @@ def run_expand_tasks(
     ``executor`` "local" runs in this process (one worker or one task; the progress bar counts relit
     images per camera) or in the kept process pool of ``workers`` processes; "ray" runs Ray tasks that
     each hold a CPU, and a GPU when rendering on CUDA. Elsewhere than in this process the bar counts the
-    images of finished subjects. Subjects that need a fit take longest, so they start first.
+    images of finished subjects. Subjects that need a fit take longest, so they start first. Each
+    subject's part is published here as its task returns (a worker never publishes).
     """
     runner = Executor(executor, workers, preload=WORKER_PRELOAD)
     total = sum(len(t.source_keys) for t in tasks) * images_per_view
-    bar = tqdm(total=total, desc=f"expand {settings.output.name}", unit="image", disable=not progress)
+    bar = progress_bar(total=total, desc=f"expand {settings.output.name}", unit="image", disable=not progress)
+
+    def done(task: ExpandTask) -> None:
+        writer.publish(task.name)
+        bar.update(len(task.source_keys) * images_per_view)
+
     try:
         if runner.in_process(len(tasks)):
-            return runner.map(partial(run_expand_task, writer, settings, on_images=bar.update), tasks)
+            return runner.map(
+                partial(run_expand_task, writer, settings, on_images=bar.update),
+                tasks,
+                on_done=lambda task: writer.publish(task.name),
+            )
         return runner.map(
             partial(run_expand_task, writer, settings),
             tasks,
-            on_done=lambda task: bar.update(len(task.source_keys) * images_per_view),
+            on_done=done,
             cost=lambda task: (not task.known, len(task.source_keys)),
             resources=TaskResources(cpus=1, gpus=1 if settings.device.startswith("cuda") else 0),
         )

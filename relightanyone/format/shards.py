@@ -13,14 +13,19 @@ processes, then committed once::
             part.add(image_row)                 # ImageRow (schema.build_image_row)
             part.add_mesh(mesh_row)             # MeshRow
             part.quarantine(entry)              # QuarantineEntry
+        writer.publish(task)                    # coordinator, when a worker's task has returned
     manifest = writer.commit()                  # coordinator: shards, index, tables, manifest (last)
 
 Files under ``<dataset>/``:
 
 ``_parts/<task>/``
     one finished task: ``images.arrow`` (+ ``offsets.json``), ``meshes.arrow``, ``quarantine.jsonl``.
-    A task is written under ``_parts/<task>.tmp/`` and renamed when its ``with`` block ends without error,
-    so a killed worker leaves only a ``.tmp`` folder, which ``begin`` discards.
+    A task is written under ``_parts/<task>.tmp/`` and renamed (*published*) once its ``with`` block ends
+    without error, so a killed worker leaves only a ``.tmp`` folder, which ``begin`` discards. Only the
+    process that made the writer, the coordinator, publishes: in it the ``with`` block publishes the part;
+    a part written elsewhere (a pool or Ray worker, which gets the writer pickled) stays in its ``.tmp``
+    folder until the coordinator calls ``writer.publish(task)`` on the task's result. A worker that
+    outlives a killed coordinator can therefore never make a part look finished.
 ``images-00000.arrow`` ...
     written by ``commit``: all rows of all parts sorted by key, one row per record batch, a new shard when
     the current one passes ``max_shard_bytes``. Same rows -> same bytes, whatever order or process the
@@ -31,6 +36,10 @@ Files under ``<dataset>/``:
 ``manifest.json``
     written last, atomically, with the sha256 and size of every file above. A dataset without it is
     incomplete and readers refuse it. ``commit`` removes ``_parts`` only after the manifest is durable.
+
+``.lock``
+    held by the coordinator from ``begin`` to ``commit`` (:mod:`relightanyone.locking`): one writer per
+    dataset folder; removed by ``commit``, left unlocked by a killed run.
 
 Resuming: run the same code again. ``begin`` removes the manifest and every ``*.tmp``, keeps the finished
 parts when the config fingerprint is unchanged (drops them otherwise), and ``commit`` rewrites every shard
@@ -61,6 +70,7 @@ from relightanyone.format.arrow_io import (
     write_table_file,
 )
 from relightanyone.format.schema import (
+    FORMAT_VERSION,
     IMAGE_SCHEMA,
     INDEX_COLUMNS,
     INDEX_NAME,
@@ -82,6 +92,8 @@ from relightanyone.format.schema import (
     SchemaError,
 )
 from relightanyone.hashing import sha256_file
+from relightanyone.locking import acquire_output_lock, release_output_lock
+from relightanyone.progress import progress_bar
 
 DEFAULT_MAX_SHARD_BYTES = 256 << 20
 PARTS_DIR = "_parts"
@@ -181,11 +193,20 @@ def _single_row_batch(schema: pa.Schema, values: dict) -> pa.RecordBatch:
     )
 
 
-class PartWriter:
-    """Rows of one task, written to ``_parts/<task>.tmp/`` and published atomically on ``close``."""
+def _publish_part(tmp_dir: Path, final_dir: Path) -> None:
+    """Rename a finished task's folder to its final name, durably."""
+    shutil.rmtree(final_dir, ignore_errors=True)
+    os.replace(tmp_dir, final_dir)
+    fsync_dir(final_dir.parent)
 
-    def __init__(self, parts_dir: Path, task: str, compression_level: int):
+
+class PartWriter:
+    """Rows of one task, written to ``_parts/<task>.tmp/`` and, when ``publish``, published atomically on
+    ``close``."""
+
+    def __init__(self, parts_dir: Path, task: str, compression_level: int, publish: bool = True):
         self.task = _check_task_name(task)
+        self.publish = publish  # False in a worker: the coordinator publishes the finished folder
         self.final_dir = parts_dir / task
         self.tmp_dir = parts_dir / f"{task}.tmp"
         shutil.rmtree(self.tmp_dir, ignore_errors=True)
@@ -218,7 +239,7 @@ class PartWriter:
         self._quarantine.setdefault(entry.item, deterministic_entry(entry))
 
     def close(self) -> None:
-        """Finish the task's files and publish the task folder."""
+        """Finish the task's files and, in the coordinator, publish the task folder."""
         self._images.finish()
         atomic_write_bytes(
             self.tmp_dir / _PART_OFFSETS,
@@ -228,9 +249,8 @@ class PartWriter:
         write_table_file(self.tmp_dir / MESHES_NAME, pa.Table.from_pylist(meshes, schema=MESH_SCHEMA))
         lines = "".join(self._quarantine[k].to_json_line() + "\n" for k in sorted(self._quarantine))
         atomic_write_bytes(self.tmp_dir / QUARANTINE_NAME, lines.encode("utf-8"))
-        shutil.rmtree(self.final_dir, ignore_errors=True)
-        os.replace(self.tmp_dir, self.final_dir)
-        fsync_dir(self.final_dir.parent)
+        if self.publish:
+            _publish_part(self.tmp_dir, self.final_dir)
 
     def abort(self) -> None:
         self._images.abort()
@@ -264,29 +284,31 @@ class ShardWriter:
             raise ValueError(
                 f"dataset folder {self.dataset_dir} must be named after the dataset {info.name!r}"
             )
+        # The coordinator: the one process that publishes parts (a pickled copy keeps this pid).
+        self.coordinator_pid = os.getpid()
 
     @property
     def parts_dir(self) -> Path:
         return self.dataset_dir / PARTS_DIR
 
     def begin(self) -> None:
-        """Start (or resume) writing: drop the manifest and temporary files; keep finished parts of the
-        same config."""
-        self.dataset_dir.mkdir(parents=True, exist_ok=True)
+        """Start (or resume) writing: lock the folder for this process until ``commit`` (another writer
+        gets :class:`~relightanyone.locking.OutputLockedError` and changes nothing), drop the manifest and
+        temporary files; keep finished parts of the same config."""
+        acquire_output_lock(self.dataset_dir)
         (self.dataset_dir / MANIFEST_NAME).unlink(missing_ok=True)
         fsync_dir(self.dataset_dir)
         stamp = self.parts_dir / _CONFIG_STAMP
-        if self.parts_dir.exists() and (
-            not stamp.exists()
-            or json.loads(stamp.read_text())["config_fingerprint"] != self.info.config_fingerprint
-        ):
+        # Parts of another config, or of another format version (another row schema), are not reused.
+        expected = {"config_fingerprint": self.info.config_fingerprint, "format_version": FORMAT_VERSION}
+        if self.parts_dir.exists() and (not stamp.exists() or json.loads(stamp.read_text()) != expected):
             shutil.rmtree(self.parts_dir)
         self.parts_dir.mkdir(exist_ok=True)
         for tmp in [*self.dataset_dir.glob("*.tmp"), *self.parts_dir.glob("*.tmp")]:
             shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
         for stale in (_STAGED_LIGHTS, _STAGED_QUARANTINE):
             (self.parts_dir / stale).unlink(missing_ok=True)
-        atomic_write_bytes(stamp, json.dumps({"config_fingerprint": self.info.config_fingerprint}).encode())
+        atomic_write_bytes(stamp, json.dumps(expected).encode())
 
     def has_part(self, task: str) -> bool:
         """Whether ``task`` finished in this or an earlier (interrupted) run."""
@@ -296,7 +318,21 @@ class ShardWriter:
         """A writer for the rows of one task; use it as a context manager."""
         if not self.parts_dir.is_dir():
             raise RuntimeError(f"{self.dataset_dir}: call ShardWriter.begin() before writing parts")
-        return PartWriter(self.parts_dir, task, self.compression_level)
+        return PartWriter(
+            self.parts_dir, task, self.compression_level, publish=os.getpid() == self.coordinator_pid
+        )
+
+    def publish(self, task: str) -> None:
+        """In the coordinator, once ``task`` has returned: publish the part a worker finished for it (nothing
+        to do when the coordinator wrote the part itself)."""
+        if os.getpid() != self.coordinator_pid:
+            raise RuntimeError(f"{self.dataset_dir}: parts are published by the coordinator process only")
+        final_dir = self.parts_dir / _check_task_name(task)
+        tmp_dir = self.parts_dir / f"{task}.tmp"
+        if tmp_dir.is_dir():
+            _publish_part(tmp_dir, final_dir)
+        elif not final_dir.is_dir():
+            raise RuntimeError(f"{self.dataset_dir}: task {task!r} has no finished part to publish")
 
     def write_lights(self, lights: Sequence[LightRow]) -> None:
         """The rig's lights (OLAT datasets), sorted by index; published by ``commit``."""
@@ -312,13 +348,16 @@ class ShardWriter:
 
     def commit(self, progress: bool = False) -> Manifest:
         """Merge all finished parts in key order into shards, write the tables and the manifest (last)."""
-        from tqdm import tqdm
-
         if not self.parts_dir.is_dir():
             raise RuntimeError(
                 f"{self.dataset_dir}: nothing to commit; call ShardWriter.begin() and write parts first"
             )
-        parts = sorted(p for p in self.parts_dir.iterdir() if p.is_dir() and not p.name.endswith(".tmp"))
+        unpublished = sorted(p.name for p in self.parts_dir.glob("*.tmp"))
+        if unpublished:  # a worker's part nobody published: its rows would be missing
+            raise RuntimeError(
+                f"{self.dataset_dir}: parts never published, call publish(task): {unpublished}"
+            )
+        parts = sorted(p for p in self.parts_dir.iterdir() if p.is_dir())
         located: list[tuple[str, int, int, list | None]] = []
         owner: dict[str, str] = {}
         for part_index, part in enumerate(parts):
@@ -334,7 +373,7 @@ class ShardWriter:
         located.sort()
         sources = [pa.memory_map(str(part / _PART_IMAGES)) for part in parts]
 
-        shards, index_rows = self._write_shards(located, sources, progress and tqdm)
+        shards, index_rows = self._write_shards(located, sources, progress)
         index_entry = self._write_index(index_rows)
         meshes_entry = self._write_meshes(parts)
         lights_entry = self._publish_lights()
@@ -360,17 +399,20 @@ class ShardWriter:
         )
         atomic_write_bytes(self.dataset_dir / MANIFEST_NAME, manifest.dumps().encode("utf-8"))
         shutil.rmtree(self.parts_dir)
+        release_output_lock(self.dataset_dir)
         return manifest
 
     def _entry(self, name: str, rows: int) -> FileEntry:
         path = self.dataset_dir / name
         return FileEntry(file=name, rows=rows, sha256=sha256_file(path), bytes=path.stat().st_size)
 
-    def _write_shards(self, located, sources, tqdm) -> tuple[list[FileEntry], list[dict]]:
+    def _write_shards(self, located, sources, progress: bool) -> tuple[list[FileEntry], list[dict]]:
         shards: list[FileEntry] = []
         index_rows: list[dict] = []
         writer: StreamFileWriter | None = None
-        bar = tqdm(total=len(located), desc=f"commit {self.info.name}", unit="row") if tqdm else None
+        bar = progress_bar(
+            total=len(located), desc=f"commit {self.info.name}", unit="row", disable=not progress
+        )
 
         def finish() -> None:
             writer.finish()
@@ -394,15 +436,13 @@ class ShardWriter:
                     "batch_offset": batch_offset,
                 }
             )
-            if bar:
-                bar.update()
+            bar.update()
             if writer.bytes_written >= self.max_shard_bytes:
                 finish()
                 writer = None
         if writer is not None:
             finish()
-        if bar:
-            bar.close()
+        bar.close()
         for path in self.dataset_dir.glob("images-*.arrow"):
             match = _SHARD_NAME.match(path.name)
             if match is None or int(match.group(1)) >= len(shards):  # left by an earlier, larger run
