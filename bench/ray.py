@@ -46,7 +46,11 @@ def ingest_through(address: str, plan, world: Path, out: Path, workers: int) -> 
         template=world / "answers" / "template" / "template.obj",
     )
     seconds = time.perf_counter() - start
-    return {"images": summary.rows, "seconds": round(seconds, 3), "images_per_s": round(summary.rows / seconds, 2)}
+    return {
+        "images": summary.rows,
+        "seconds": round(seconds, 3),
+        "images_per_s": round(summary.rows / seconds, 2),
+    }
 
 
 def cluster_run(world: Path, nodes: int, repeats: int, scratch: Path) -> dict:
@@ -58,7 +62,8 @@ def cluster_run(world: Path, nodes: int, repeats: int, scratch: Path) -> dict:
         try:
             ingest_through(address, warm_plan, world, scratch / f"warm-{nodes}", nodes)
             runs = [
-                ingest_through(address, plan, world, scratch / f"run-{nodes}-{k}", nodes) for k in range(repeats)
+                ingest_through(address, plan, world, scratch / f"run-{nodes}-{k}", nodes)
+                for k in range(repeats)
             ]
             cpus = ray.cluster_resources().get("CPU", 0)
         finally:

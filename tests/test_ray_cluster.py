@@ -31,7 +31,9 @@ def capture(tmp_path_factory) -> Path:
     return make_capture(tmp_path_factory.mktemp("cluster") / "capture", subjects=("s1", "s2", "s3"))
 
 
-def test_ingest_through_a_cluster_from_ray_address_gives_the_local_bytes(cluster, capture, tmp_path, monkeypatch):
+def test_ingest_through_a_cluster_from_ray_address_gives_the_local_bytes(
+    cluster, capture, tmp_path, monkeypatch
+):
     reference = dataset_bytes(ingest(capture, tmp_path / "local").path)
     monkeypatch.setenv("RAY_ADDRESS", cluster)
     try:
@@ -65,7 +67,9 @@ def test_the_ingest_command_joins_the_cluster_named_by_ray_address(cluster, capt
 
 
 def _hashes(folder: Path) -> dict[str, str]:
-    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir()) if p.is_file()}
+    return {
+        p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir()) if p.is_file()
+    }
 
 
 def test_expansion_through_a_cluster_gives_the_local_bytes(cluster, tmp_path, monkeypatch):

@@ -28,8 +28,13 @@ def _ray_command() -> str:
     return str(Path(sys.executable).with_name("ray"))
 
 
+# A throw-away cluster on loopback: no token authentication (Ray enables it by default for ``ray start``;
+# a lab's cluster keeps it, and its clients find the token as any Ray client does).
+CLUSTER_ENVIRONMENT = {"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0"}
+
+
 def _start_node(arguments: list[str], temp_dir: Path, log: Path) -> subprocess.Popen:
-    environment = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+    environment = {**os.environ, **CLUSTER_ENVIRONMENT}
     environment.pop("RAY_ADDRESS", None)
     return subprocess.Popen(
         [_ray_command(), "start", "--block", "--disable-usage-stats", *arguments],
@@ -48,7 +53,12 @@ def _alive_cpus(address: str) -> float:
         "ray.init(address=sys.argv[1], log_to_driver=False)\n"
         "print(sum(n['Resources'].get('CPU', 0) for n in ray.nodes() if n['Alive']))\n"
     )
-    result = subprocess.run([sys.executable, "-c", probe, address], capture_output=True, text=True)
+    result = subprocess.run(
+        [sys.executable, "-c", probe, address],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **CLUSTER_ENVIRONMENT},
+    )
     try:
         return float(result.stdout.strip().splitlines()[-1])
     except (ValueError, IndexError):
@@ -70,12 +80,14 @@ def _stop(node: subprocess.Popen) -> None:
 def ray_cluster(worker_nodes: int = 1, cpus_per_node: int = 1, head_cpus: int | None = None) -> Iterator[str]:
     """Start a head node of ``head_cpus`` CPUs (default ``cpus_per_node``) and ``worker_nodes`` worker nodes
     of ``cpus_per_node`` CPUs; yield the head's address (``host:port``) once every node has joined; stop
-    them all on exit."""
+    them all on exit. While it runs, this process's environment lets a Ray client join it."""
     head_cpus = cpus_per_node if head_cpus is None else head_cpus
     # A short folder of its own: Ray's socket paths must fit in 107 bytes, and no other Ray shares it.
     temp_dir = Path(tempfile.mkdtemp(prefix="ray-", dir="/tmp"))
     port = _free_port()
     address = f"127.0.0.1:{port}"
+    saved = {name: os.environ.get(name) for name in CLUSTER_ENVIRONMENT}
+    os.environ.update(CLUSTER_ENVIRONMENT)
     nodes = [
         _start_node(
             [
@@ -113,3 +125,8 @@ def ray_cluster(worker_nodes: int = 1, cpus_per_node: int = 1, head_cpus: int | 
         for node in reversed(nodes):
             _stop(node)
         shutil.rmtree(temp_dir, ignore_errors=True)
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
