@@ -7,6 +7,7 @@ imported here: the commands' modules are imported by ``relightanyone --help``, w
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -142,14 +143,34 @@ def workers_option(help: str | None = None) -> Decorator:
     return click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True, help=help)
 
 
+def _join_ray_cluster(ctx: click.Context, param: click.Parameter, address: str | None) -> None:
+    # The executor joins the cluster named by RAY_ADDRESS, Ray's own variable; the option sets it for this
+    # process so that one rule decides which cluster is joined.
+    if address:
+        os.environ["RAY_ADDRESS"] = address
+
+
 def executor_option() -> Decorator:
-    return click.option(
+    """``--executor local|ray`` and ``--ray-address HOST:PORT`` (an existing cluster to join)."""
+    executor = click.option(
         "--executor",
         type=click.Choice(EXECUTORS),
         default="local",
         show_default=True,
-        help="Task executor: a local process pool, or Ray (pip install 'relightanyone[ray]').",
+        help="Task executor: a local process pool, or Ray (pip install 'relightanyone[ray]'). With Ray, an "
+        "existing cluster is joined when --ray-address or RAY_ADDRESS names it, otherwise a local Ray of "
+        "--workers CPUs is started.",
     )
+    address = click.option(
+        "--ray-address",
+        metavar="HOST:PORT",
+        default=None,
+        expose_value=False,
+        callback=_join_ray_cluster,
+        help="Address of a running Ray cluster to join with --executor ray (the head's HOST:PORT, or 'auto'); "
+        "the same as setting RAY_ADDRESS.",
+    )
+    return lambda command: executor(address(command))
 
 
 def fit_iterations_option(default: tuple[int, int], help: str) -> Decorator:
