@@ -120,6 +120,13 @@ def train_group() -> None:
     show_default=True,
     help="Run the colour warm-up for --uncalibrated datasets (off: reuse matrices already stored).",
 )
+@click.option(
+    "--lighting-code/--no-lighting-code",
+    default=True,
+    show_default=True,
+    help="Learn a lighting code per dataset (off: the ablation without z_l; datasets are aligned only by "
+    "their colour matrices).",
+)
 @ITERATIONS_OPTION
 @WARMUP_ITERATIONS_OPTION
 @BATCH_SIZE_OPTION
@@ -133,6 +140,7 @@ def train_stage1_command(
     out,
     uncalibrated,
     colour_warmup,
+    lighting_code,
     iterations,
     warmup_iterations,
     batch_size,
@@ -163,7 +171,13 @@ def train_stage1_command(
         if warm:
             click.echo("colour warm-up matrices (render -> dataset): " + json.dumps(warm["colour_matrices"]))
     config = Stage1Config(
-        data=list(data), out=out, preset=chosen, seed=seed, resume=resume, eval_views_per_dataset=eval_views
+        data=list(data),
+        out=out,
+        preset=chosen,
+        seed=seed,
+        lighting_code=lighting_code,
+        resume=resume,
+        eval_views_per_dataset=eval_views,
     )
     metrics = train_stage1(config)
     for name, values in (metrics.get("held_out") or {}).items():
