@@ -45,6 +45,22 @@ from relightanyone.cli_options import (
     default=None,
     help="Single-stage baseline run (Table 1 compares it when given).",
 )
+@click.option(
+    "--ablation",
+    "ablation",
+    multiple=True,
+    type=(click.Choice(["with-zl", "no-zl", "colour-matrix"]), EXISTING_FOLDER, EXISTING_FOLDER),
+    metavar="ARM STAGE1 STAGE2",
+    help="A lighting-code ablation arm and its stage-1 and stage-2 runs (repeat per arm): with-zl (the "
+    "method; default: --stage1/--stage2), no-zl (stage 1 trained --no-lighting-code), colour-matrix (no "
+    "lighting codes, datasets aligned by learned 3x3 matrices). Table 3 compares them.",
+)
+@click.option(
+    "--ablation-fits/--no-ablation-fits",
+    default=True,
+    show_default=True,
+    help="Table 3b fits the held-out flat-lit subjects with every arm (off: with the main runs only).",
+)
 @out_option("Output folder.")
 @fit_iterations_option((100, 100), "Inversion and finetuning iterations of every fit.")
 @click.option(
@@ -90,6 +106,8 @@ def evaluate_command(
     stage1: Path,
     stage2: Path,
     single_stage: Path | None,
+    ablation: tuple[tuple[str, Path, Path], ...],
+    ablation_fits: bool,
     out: Path,
     fit_iterations: tuple[int, int],
     subjects: int,
@@ -111,12 +129,18 @@ def evaluate_command(
     from relightanyone.evaluation.truth import WorldAnswers
 
     answers = WorldAnswers(world)
+    arms: dict[str, tuple[Path, Path]] = {}
+    for arm, arm_stage1, arm_stage2 in ablation:
+        if arm in arms:
+            raise click.UsageError(f"--ablation {arm} given twice")
+        arms[arm] = (arm_stage1, arm_stage2)
     inputs = EvaluationInputs(
         datasets=world_datasets(data, answers),
         stage1=stage1,
         stage2=stage2,
         single_stage=single_stage,
         answers=answers,
+        ablation=arms,
     )
     settings = EvaluationSettings(
         inversion_iterations=fit_iterations[0],
@@ -125,6 +149,7 @@ def evaluate_command(
         lights_subset=lights_subset or None,
         envmaps=envmaps or None,
         subjects_per_dataset=subjects or None,
+        ablation_fits=ablation_fits,
         views_per_step=views_per_step,
         seed=seed,
         progress=not quiet,

@@ -13,7 +13,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -23,6 +22,14 @@ import numpy as np
 import torch
 
 from relightanyone.errors import InputError
+from relightanyone.evaluation.ablation import (
+    arm_dataset,
+    arm_subject_index,
+    budgets_agree,
+    load_arms,
+    single_run_budget,
+    two_stage_budget,
+)
 from relightanyone.evaluation.cases import (
     EvalView,
     LightCase,
@@ -47,8 +54,7 @@ from relightanyone.format.torch_dataset import NormalizedTorchDataset, image_hwc
 from relightanyone.model.fit.avatar import check_pinhole_cameras, decoded_avatar, relight_views
 from relightanyone.model.fit.fitter import FitSettings, Fitter, load_relightable_model
 from relightanyone.model.fit.views import load_fit_views
-from relightanyone.model.train.checkpoint import load_checkpoint
-from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
+from relightanyone.model.train.run_files import RUN_INFO_NAME
 from relightanyone.render.lights import PointLights
 
 # true_image(dataset, subject, camera, light) -> (image (H, W, 3), mask (H, W)) in the row's geometry.
@@ -66,6 +72,7 @@ class EvaluationSettings:
     lights_subset: int | None = 16  # OLAT lights compared (evenly spread rig indices)
     envmaps: int | None = None  # environment maps compared (all when None)
     subjects_per_dataset: int | None = 1  # held-out subjects per dataset (all when None)
+    ablation_fits: bool = True  # Table 3b fits held-out flat-lit subjects with every ablation arm
     views_per_step: int = 4
     seed: int = 0
     progress: bool = True
@@ -81,6 +88,8 @@ class EvaluationInputs:
     stage2: Path
     single_stage: Path | None = None
     answers: WorldAnswers | None = None
+    # Lighting-code ablation arms: arm name (``with-zl``, ``no-zl``, ``colour-matrix``) -> (stage 1, stage 2)
+    ablation: dict[str, tuple[Path, Path]] = field(default_factory=dict)
     true_olat_image: TrueOlatImage | None = None
 
 
@@ -228,6 +237,8 @@ class Evaluation:
         self.inputs = inputs
         self.settings = settings
         self.model = load_relightable_model(inputs.stage1, inputs.stage2)
+        self.arms = load_arms(inputs.ablation, self.model, inputs.stage1, inputs.stage2)
+        self.budgets = self._budgets()
         self.single = None
         if inputs.single_stage is not None:
             self.single = load_single_stage_run(inputs.single_stage)
@@ -240,6 +251,15 @@ class Evaluation:
         self.results: dict = {"lpips": reason, "timings_s": {}, "units": {}}
         self.grids: dict[str, list] = {}
         self.inputs_images: dict[str, np.ndarray] = {}
+
+    def _budgets(self) -> dict[str, dict]:
+        """Training budget of the model behind every table row (row name -> budget)."""
+        two_stage = two_stage_budget(self.inputs.stage1, self.inputs.stage2)
+        budgets = {"two_stage": two_stage, "multi_view": two_stage, "single_image": two_stage}
+        if self.inputs.single_stage is not None:
+            budgets["single_stage"] = single_run_budget(self.inputs.single_stage)
+        budgets.update({row: arm.budget for row, arm in self.arms.items()})
+        return budgets
 
     def _olat_world_name(self) -> str:
 
@@ -262,10 +282,20 @@ class Evaluation:
             progress=self.settings.progress,
         )
 
-    def fit(self, world_name: str, subject: str, cameras: list[str], label: str, model=None, single=False):
-        """Fit a subject's full-on frame in ``cameras``; returns the avatar (timed under ``label``)."""
+    def fit(
+        self,
+        world_name: str,
+        subject: str,
+        cameras: list[str],
+        label: str,
+        model=None,
+        single=False,
+        data: Path | None = None,
+    ):
+        """Fit a subject's full-on frame in ``cameras`` (read from ``data``, default the evaluated dataset);
+        returns the avatar (timed under ``label``)."""
 
-        views = load_fit_views(self.inputs.datasets[world_name], subject, cameras=cameras)
+        views = load_fit_views(data or self.inputs.datasets[world_name], subject, cameras=cameras)
         self.inputs_images.setdefault(f"{world_name}/{subject}", views.images[0].permute(1, 2, 0).numpy())
         torch.manual_seed(self.settings.seed)
         start = time.perf_counter()
@@ -400,15 +430,16 @@ class Evaluation:
         }
 
     def table3(self) -> None:
-        """The lighting-code ablation on flat-lit datasets, with and without the OLAT dataset's z_l.
+        """The lighting-code ablation on flat-lit datasets: every arm (:mod:`relightanyone.evaluation.ablation`)
+        relit under the rig lights and compared with the subjects' true OLAT images.
 
-        ``table3``: stage-1 training subjects decoded from their identity codes, no fitting (what the OLAT
-        expansion renders), so nothing can absorb the code's effect. ``table3_fitted``: held-out subjects
-        fitted on their full-on frame; fitting also estimates the scene lighting and finetunes stage 1.
+        ``table3``: stage-1 training subjects of each arm decoded from their identity codes, no fitting
+        (what the OLAT expansion renders), so nothing can absorb a difference between the arms.
+        ``table3_fitted``: held-out subjects fitted on their full-on frame, with every arm when
+        ``settings.ablation_fits``, else with the main runs only.
         """
 
         stage1_names = self._stage1_dataset_names()
-        stage1_subjects = self._stage1_subjects()
         decoded, fitted = {}, {}
         for world_name, path in sorted(self.inputs.datasets.items()):
             dataset = NormalizedDataset(path)
@@ -417,14 +448,12 @@ class Evaluation:
             if dataset.name not in stage1_names:
                 raise InputError(
                     f"{path}: dataset {dataset.name!r} is not in stage-1 run {self.inputs.stage1} "
-                    f"({stage1_names}); the ablation needs its lighting code"
+                    f"({stage1_names}); the ablation needs its subjects"
                 )
-            own_code = self.model.stage1.lighting_codes[stage1_names.index(dataset.name)].detach().clone()
-            without = dataclasses.replace(self.model, lighting_code=own_code)
-            known = sorted(s.split("/", 1)[1] for s in stage1_subjects if s.split("/", 1)[0] == dataset.name)
+            reference = self.arms["with_lighting_code"].subjects
+            known = sorted(s.split("/", 1)[1] for s in reference if s.split("/", 1)[0] == dataset.name)
             for subject in known[: self.settings.subjects_per_dataset]:
                 cameras, _ = subject_cameras(path, subject, self.settings.max_views)
-                index = stage1_subjects.index(f"{dataset.name}/{subject}")
                 frame = min(
                     NormalizedTorchDataset(dataset, subjects=subject, patterns="full").column("frame")
                 )
@@ -433,50 +462,50 @@ class Evaluation:
                     None if tracked is None else torch.as_tensor(np.asarray(tracked), dtype=torch.float32)
                 )
                 self.inputs_images.setdefault(f"{world_name}/{subject}", self._first_image(path, subject))
+                avatars = {
+                    row: decoded_avatar(arm.model, arm_subject_index(arm, dataset.name, subject), tracked, {})
+                    for row, arm in self.arms.items()
+                }
                 decoded[f"{world_name}/{subject}"] = self._ablation_entry(
-                    world_name,
-                    subject,
-                    cameras,
-                    decoded_avatar(self.model, index, tracked, {}),
-                    decoded_avatar(without, index, tracked, {}),
+                    world_name, subject, cameras, avatars
                 )
             for subject in test_subjects(self.inputs, world_name, self.settings.subjects_per_dataset):
                 cameras, _ = subject_cameras(path, subject, self.settings.max_views)
+                if self.settings.ablation_fits:
+                    avatars = {
+                        row: self.fit(
+                            world_name,
+                            subject,
+                            cameras,
+                            f"two-stage fit, {row}",
+                            model=arm.model,
+                            data=arm_dataset(arm, dataset.name, path),
+                        )
+                        for row, arm in self.arms.items()
+                    }
+                else:
+                    avatars = {"two_stage": self.fit(world_name, subject, cameras, "two-stage multi-view")}
                 fitted[f"{world_name}/{subject}"] = self._ablation_entry(
-                    world_name,
-                    subject,
-                    cameras,
-                    self.fit(world_name, subject, cameras, "two-stage with z_l (OLAT code)"),
-                    self.fit(world_name, subject, cameras, "two-stage own z_l", model=without),
+                    world_name, subject, cameras, avatars
                 )
         self.tables["table3"] = decoded
         self.tables["table3_fitted"] = fitted
 
-    def _ablation_entry(
-        self, world_name: str, subject: str, cameras: list[str], with_code, without_code
-    ) -> dict:
-        """A Table-3 entry: both avatars relit under the rig lights and compared with the subject's truth."""
+    def _ablation_entry(self, world_name: str, subject: str, cameras: list[str], avatars: dict) -> dict:
+        """A Table-3 entry: every avatar relit under the rig lights and compared with the subject's truth."""
         cases, source = self.olat_cases(world_name, subject, cameras)
         return {
             "source": source,
             "seen_in_training": self.seen_in_training(world_name, subject),
             "cameras": cameras,
             "lights": [c.label for c in cases],
-            "rows": {
-                "with_lighting_code": compare(with_code, cases, self.lpips),
-                "without_lighting_code": compare(without_code, cases, self.lpips),
-            },
+            "rows": {row: compare(avatar, cases, self.lpips) for row, avatar in avatars.items()},
         }
 
     def _first_image(self, path: Path, subject: str) -> np.ndarray:
         """(H, W, 3) the subject's first full-on row (the input column of the image grids)."""
 
         return image_hwc(NormalizedTorchDataset(path, subjects=subject, patterns="full")[0])
-
-    def _stage1_subjects(self) -> list[str]:
-        """``dataset/subject`` of every stage-1 identity code, in code order."""
-
-        return list(load_checkpoint(Path(self.inputs.stage1) / CHECKPOINT_NAME)["subjects"])
 
     def seen_in_training(self, world_name: str, subject: str) -> list[str]:
         """Runs whose training subjects include this one (then it is not held out; the report says so)."""
@@ -519,6 +548,7 @@ class Evaluation:
                     for metric, value in summary.items():
                         means.setdefault(row, {}).setdefault(metric, []).append(value)
             self.results[name] = {
+                "budgets": {row: self.budgets.get(row) for row in means},
                 "subjects": entries,
                 "mean": {
                     row: {
@@ -527,6 +557,13 @@ class Evaluation:
                     for row, metrics in means.items()
                 },
             }
+        self.results["ablation"] = {
+            "arms": {
+                row: {"runs": list(arm.runs), "lighting_code": arm.lighting_code}
+                for row, arm in self.arms.items()
+            },
+            "budgets_agree": budgets_agree(self.arms),
+        }
         self.results["light_indices"] = self.light_indices
         self.results["olat_dataset"] = self.olat_world
         return self.results

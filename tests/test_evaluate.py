@@ -16,6 +16,7 @@ from helpers.sphere_world import (
     SIZE,
     build_sphere_world,
     sphere_camera,
+    train_ablation_arms,
     true_olat_image,
 )
 
@@ -159,6 +160,7 @@ def evaluated(tmp_path_factory):
         stage2=paths["stage2"],
         single_stage=paths["single_stage"],
         answers=WorldAnswers(world),
+        ablation=train_ablation_arms(paths),
     )
     settings = EvaluationSettings(inversion_iterations=3, finetune_iterations=2, max_views=3, progress=False)
     out = root / "out"
@@ -222,16 +224,24 @@ def test_tables_and_report(evaluated):
     table2 = results["table2"]["subjects"]["d1/s02"]
     assert table2["weight_fit_max_residual"] < 1e-2
     assert set(table2["metrics"]) == {"multi_view", "single_image"}
-    # The ablation on the stage-1 training subject (decoded) and on the held-out one (fitted).
+    # The ablation's three trained arms on the stage-1 training subject (decoded) and on the held-out
+    # one (fitted), each with its training budget.
+    arms = {"with_lighting_code", "without_lighting_code", "colour_matrix"}
     for table, subject in (("table3", "d2/f00"), ("table3_fitted", "d2/f01")):
         entry = results[table]["subjects"][subject]
-        assert set(entry["metrics"]) == {"with_lighting_code", "without_lighting_code"}
+        assert set(entry["metrics"]) == arms
         assert entry["metrics"]["with_lighting_code"]["images"] == 4 * 3
-        # Different lighting codes give different relit images, so the ablation measures something.
-        assert (
-            entry["metrics"]["with_lighting_code"]["rmse"]
-            != entry["metrics"]["without_lighting_code"]["rmse"]
-        )
+        # Differently trained arms give different relit images, so the ablation measures something.
+        rmse = {entry["metrics"][arm]["rmse"] for arm in arms}
+        assert len(rmse) == 3, entry["metrics"]
+        assert set(results[table]["budgets"]) == arms
+    assert results["ablation"]["budgets_agree"] is True
+    budget = results["table3"]["budgets"]["without_lighting_code"]
+    assert (
+        budget["stage1"]["iterations"] == 6
+        and budget["samples"] == budget["stage1"]["samples"] + (budget["stage2"]["samples"])
+    )
+    assert results["table1"]["budgets"]["single_stage"]["single_stage"]["stage"] == "single-stage"
     assert results["table3"]["subjects"]["d2/f00"]["seen_in_training"] == ["stage 1"]
     saved = json.loads((out / "evaluation.json").read_text())
     assert saved["table1"]["mean"]["two_stage"]["psnr"] == pytest.approx(
@@ -240,7 +250,8 @@ def test_tables_and_report(evaluated):
     assert (evaluated["root"] / "bench" / "evaluation.json").read_text() == (
         out / "evaluation.json"
     ).read_text()
-    assert len(saved["goals"]) == 4
+    assert len(saved["goals"]) == 5
+    assert "training budget" in report_text(out) and "3×3 colour matrix" in report_text(out)
     report = (out / "report.md").read_text()
     assert "synthetic world" in report and "paper's level" in report and "LPIPS" in report
     for grid in [g for names in saved["grids"].values() for g in names]:
@@ -252,6 +263,10 @@ def test_tables_and_report(evaluated):
         "table3_d2_f00.png",
         "table3_fitted_d2_f01.png",
     }
+
+
+def report_text(out: Path) -> str:
+    return (out / "report.md").read_text()
 
 
 def test_batched_point_light_renders_match_relight(evaluated):
