@@ -61,6 +61,14 @@ from relightanyone.cli_options import (
     show_default=True,
     help="Table 3b fits the held-out flat-lit subjects with every arm (off: with the main runs only).",
 )
+@click.option(
+    "--unknown-lighting/--dataset-lighting",
+    "unknown_lighting",
+    default=True,
+    show_default=True,
+    help="Fit Table 1/2 subjects on the world's renders under a lighting unknown to the fit (off: on the "
+    "dataset's full-on rows, lit by the calibrated rig the fit's prior starts from).",
+)
 @out_option("Output folder.")
 @fit_iterations_option((100, 100), "Inversion and finetuning iterations of every fit.")
 @click.option(
@@ -108,6 +116,7 @@ def evaluate_command(
     single_stage: Path | None,
     ablation: tuple[tuple[str, Path, Path], ...],
     ablation_fits: bool,
+    unknown_lighting: bool,
     out: Path,
     fit_iterations: tuple[int, int],
     subjects: int,
@@ -150,6 +159,7 @@ def evaluate_command(
         envmaps=envmaps or None,
         subjects_per_dataset=subjects or None,
         ablation_fits=ablation_fits,
+        unknown_lighting=unknown_lighting,
         views_per_step=views_per_step,
         seed=seed,
         progress=not quiet,

@@ -48,12 +48,17 @@ from relightanyone.evaluation.cases import (
 from relightanyone.evaluation.metrics import LpipsMetric, image_metrics, lpips_status
 from relightanyone.evaluation.single_stage import SingleStageFitter, load_single_stage_run
 from relightanyone.evaluation.truth import WorldAnswers
+from relightanyone.evaluation.unknown_lighting import (
+    select_views,
+    subject_input_lighting,
+    unknown_lighting_views,
+)
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import make_mesh_key
 from relightanyone.format.torch_dataset import NormalizedTorchDataset, image_hwc
 from relightanyone.model.fit.avatar import check_pinhole_cameras, decoded_avatar, relight_views
 from relightanyone.model.fit.fitter import FitSettings, Fitter, load_relightable_model
-from relightanyone.model.fit.views import load_fit_views
+from relightanyone.model.fit.views import FitViews, load_fit_views
 from relightanyone.model.train.run_files import RUN_INFO_NAME
 from relightanyone.render.lights import PointLights
 
@@ -73,6 +78,7 @@ class EvaluationSettings:
     envmaps: int | None = None  # environment maps compared (all when None)
     subjects_per_dataset: int | None = 1  # held-out subjects per dataset (all when None)
     ablation_fits: bool = True  # Table 3b fits held-out flat-lit subjects with every ablation arm
+    unknown_lighting: bool = True  # Table 1/2 inputs under the world's unknown lighting (else the rows)
     views_per_step: int = 4
     seed: int = 0
     progress: bool = True
@@ -250,6 +256,7 @@ class Evaluation:
         self.light_indices = evenly_spread(rig_size, settings.lights_subset)
         self.results: dict = {"lpips": reason, "timings_s": {}, "units": {}}
         self.grids: dict[str, list] = {}
+        self.input_lightings: dict[str, dict] = {}
         self.inputs_images: dict[str, np.ndarray] = {}
 
     def _budgets(self) -> dict[str, dict]:
@@ -291,11 +298,13 @@ class Evaluation:
         model=None,
         single=False,
         data: Path | None = None,
+        views: FitViews | None = None,
     ):
-        """Fit a subject's full-on frame in ``cameras`` (read from ``data``, default the evaluated dataset);
-        returns the avatar (timed under ``label``)."""
+        """Fit ``views``, by default the subject's full-on frame in ``cameras`` (read from ``data``, default
+        the evaluated dataset); returns the avatar (timed under ``label``)."""
 
-        views = load_fit_views(data or self.inputs.datasets[world_name], subject, cameras=cameras)
+        if views is None:
+            views = load_fit_views(data or self.inputs.datasets[world_name], subject, cameras=cameras)
         self.inputs_images.setdefault(f"{world_name}/{subject}", views.images[0].permute(1, 2, 0).numpy())
         torch.manual_seed(self.settings.seed)
         start = time.perf_counter()
@@ -382,7 +391,6 @@ class Evaluation:
             cameras, frontal = subject_cameras(
                 self.inputs.datasets[world_name], subject, self.settings.max_views
             )
-            ours = self.fit(world_name, subject, cameras, "two-stage multi-view")
             cases, source = self.olat_cases(world_name, subject, cameras)
             if source == "normalized OLAT rows":
                 self.check_units(world_name, subject, cameras, cases)
@@ -391,23 +399,63 @@ class Evaluation:
                 self.results["units"]["expected_from_lights"] = expected_olat_over_full_on(
                     self.inputs.datasets[world_name]
                 )
+            inputs = self.held_out_input(world_name, subject, cameras)
+            ours = self.fit(world_name, subject, cameras, "two-stage multi-view", views=inputs)
             rows = {"two_stage": compare(ours, cases, self.lpips)}
             if self.single is not None:
-                baseline = self.fit(world_name, subject, cameras, "single-stage multi-view", single=True)
+                baseline = self.fit(
+                    world_name, subject, cameras, "single-stage multi-view", single=True, views=inputs
+                )
                 rows["single_stage"] = compare(baseline, cases, self.lpips)
             table1[key] = {
                 "source": source,
+                "input": self.input_description(inputs),
                 "cameras": cameras,
                 "lights": [c.label for c in cases],
                 "seen_in_training": self.seen_in_training(world_name, subject),
                 "rows": rows,
             }
-            table2_entry = self.table2_subject(world_name, subject, cameras, frontal, ours)
+            table2_entry = self.table2_subject(world_name, subject, cameras, frontal, ours, inputs)
             if table2_entry is not None:
                 table2[key] = table2_entry
         self.tables = {"table1": table1, "table2": table2}
 
-    def table2_subject(self, world_name, subject, cameras, frontal, multi_view_avatar):
+    def held_out_input(self, world_name: str, subject: str, cameras: list[str]) -> FitViews | None:
+        """The fit input of a Table 1/2 subject under the world's unknown lighting
+        (:mod:`relightanyone.evaluation.unknown_lighting`); None (the dataset's full-on rows) when
+        ``settings.unknown_lighting`` is off or the world has no answers for the dataset."""
+        answers = self.inputs.answers
+        if not self.settings.unknown_lighting or answers is None or world_name not in answers.splits:
+            return None
+        path = self.inputs.datasets[world_name]
+        dataset = NormalizedDataset(path)
+        frame = answer_frame(answers, world_name, path, subject, cameras)
+        lighting = subject_input_lighting(answers, world_name, subject)
+        tracked = dataset.meshes().get(make_mesh_key(subject, frame.frame))
+        tracked = None if tracked is None else torch.as_tensor(np.asarray(tracked), dtype=torch.float32)
+        views = unknown_lighting_views(
+            answers,
+            frame,
+            lighting,
+            answer_masks(answers, frame),
+            dataset.name,
+            tracked,
+            self.results["units"].get("answer_scale"),
+        )
+        self.input_lightings[f"{world_name}/{subject}"] = lighting.describe()
+        return views
+
+    def input_description(self, views: FitViews | None) -> dict:
+        """What a fit was given: the input lighting and the lighting prior it started from."""
+        if views is None:
+            return {"images": "the dataset's full-on rows", "lighting": "the calibrated full-on rig"}
+        return {
+            "images": "the world's render under a lighting unknown to the fit",
+            "lighting": self.input_lightings.get(f"{self.olat_world}/{views.subject}"),
+            "prior": "the full-on rig of the OLAT dataset's training captures (lights.arrow)",
+        }
+
+    def table2_subject(self, world_name, subject, cameras, frontal, multi_view_avatar, inputs=None):
         answers = self.inputs.answers
         if answers is None or world_name not in answers.splits or not answers.envmap_names():
             return None
@@ -415,9 +463,11 @@ class Evaluation:
         envmaps = [envmaps[i] for i in evenly_spread(len(envmaps), self.settings.envmaps)]
         frame = answer_frame(answers, world_name, self.inputs.datasets[world_name], subject, cameras)
         cases = answer_envmap_cases(answers, frame, self.model.rig, envmaps, answer_masks(answers, frame))
-        single_image = self.fit(world_name, subject, [frontal], "two-stage single image")
+        single_input = None if inputs is None else select_views(inputs, [frontal])
+        single_image = self.fit(world_name, subject, [frontal], "two-stage single image", views=single_input)
         return {
             "source": "world answers relit by image-based relighting (weights recovered from the answers)",
+            "input": self.input_description(inputs),
             "seen_in_training": self.seen_in_training(world_name, subject),
             "cameras": cameras,
             "single_image_camera": frontal,

@@ -364,3 +364,23 @@ def test_report_md_escapes_names_from_the_data(tmp_path):
     # Every table row still has one cell per column.
     for row in re.findall(r"<tr>(.*?)</tr>", html, flags=re.S):
         assert row.count("<td>") in (0, 3), row
+
+
+def test_held_out_inputs_are_lit_by_an_unknown_lighting(evaluated):
+    """Table 1/2 fit the held-out subject on the world's render under its own lighting, which is the
+    analytic sphere under the weighted rig (the renderer is linear in its lights)."""
+    from relightanyone.evaluation.cases import answer_frame
+    from relightanyone.evaluation.unknown_lighting import relit_input_image, subject_input_lighting
+
+    entry = evaluated["results"]["table1"]["subjects"]["d1/s02"]
+    assert entry["input"]["images"].startswith("the world's render")
+    assert "training captures" in entry["input"]["prior"]
+    answers = WorldAnswers(evaluated["world"])
+    lighting = subject_input_lighting(answers, "d1", "s02")
+    assert entry["input"]["lighting"]["level"] == pytest.approx(lighting.level, abs=1e-4)
+    frame = answer_frame(answers, "d1", evaluated["paths"]["data"], "s02", ["cam01"])
+    image = relit_input_image(answers, frame, "cam01", lighting.weights)
+    truth = sum(lighting.weights[k] * true_olat_image("s02", 1, k)[0] for k in range(4))
+    inside = true_olat_image("s02", 1, 0)[1]
+    np.testing.assert_allclose(image[inside], truth[inside], rtol=5e-3, atol=5e-3)
+    assert evaluated["results"]["table2"]["subjects"]["d1/s02"]["input"] == entry["input"]
