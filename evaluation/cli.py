@@ -69,6 +69,14 @@ from relightanyone.cli_options import (
     help="Fit Table 1/2 subjects on the world's renders under a lighting unknown to the fit (off: on the "
     "dataset's full-on rows, lit by the calibrated rig the fit's prior starts from).",
 )
+@click.option(
+    "--monocular-single-image/--calibrated-single-image",
+    "monocular_single_image",
+    default=True,
+    show_default=True,
+    help="Table 2's single-image fit gets what one image yields: a monocular-quality mesh, a mask from "
+    "the image, a generic focal length (off: the dataset's tracked mesh, mask and calibration).",
+)
 @out_option("Output folder.")
 @fit_iterations_option((100, 100), "Inversion and finetuning iterations of every fit.")
 @click.option(
@@ -117,6 +125,7 @@ def evaluate_command(
     ablation: tuple[tuple[str, Path, Path], ...],
     ablation_fits: bool,
     unknown_lighting: bool,
+    monocular_single_image: bool,
     out: Path,
     fit_iterations: tuple[int, int],
     subjects: int,
@@ -160,6 +169,7 @@ def evaluate_command(
         subjects_per_dataset=subjects or None,
         ablation_fits=ablation_fits,
         unknown_lighting=unknown_lighting,
+        monocular_single_image=monocular_single_image,
         views_per_step=views_per_step,
         seed=seed,
         progress=not quiet,

@@ -332,7 +332,7 @@ def write_report(out: Path, results: dict, tables: dict, input_images: dict[str,
             extra = {"paper's level, multi-view (real captures, approximate)": PAPER_TABLE2_LEVEL}
         lines += (
             ["Mean over subjects (images: total):", ""]
-            + metric_table(entry["mean"], metrics, extra, entry.get("budgets", {}))
+            + metric_table(entry["mean"], metrics, extra, entry.get("budgets"))
             + [""]
         )
         if table in ABLATION_TABLES and "ablation" in results:

@@ -46,6 +46,7 @@ from relightanyone.evaluation.cases import (
     view_cameras,
 )
 from relightanyone.evaluation.metrics import LpipsMetric, image_metrics, lpips_status
+from relightanyone.evaluation.single_image import monocular_views
 from relightanyone.evaluation.single_stage import SingleStageFitter, load_single_stage_run
 from relightanyone.evaluation.truth import WorldAnswers
 from relightanyone.evaluation.unknown_lighting import (
@@ -79,6 +80,7 @@ class EvaluationSettings:
     subjects_per_dataset: int | None = 1  # held-out subjects per dataset (all when None)
     ablation_fits: bool = True  # Table 3b fits held-out flat-lit subjects with every ablation arm
     unknown_lighting: bool = True  # Table 1/2 inputs under the world's unknown lighting (else the rows)
+    monocular_single_image: bool = True  # Table 2's single image: monocular mesh, own mask, generic focal
     views_per_step: int = 4
     seed: int = 0
     progress: bool = True
@@ -463,7 +465,13 @@ class Evaluation:
         envmaps = [envmaps[i] for i in evenly_spread(len(envmaps), self.settings.envmaps)]
         frame = answer_frame(answers, world_name, self.inputs.datasets[world_name], subject, cameras)
         cases = answer_envmap_cases(answers, frame, self.model.rig, envmaps, answer_masks(answers, frame))
-        single_input = None if inputs is None else select_views(inputs, [frontal])
+        if inputs is None:
+            single_input = load_fit_views(self.inputs.datasets[world_name], subject, cameras=[frontal])
+        else:
+            single_input = select_views(inputs, [frontal])
+        single_record = {"mesh": "the dataset's tracked mesh", "mask": "the dataset's", "focal": "calibrated"}
+        if self.settings.monocular_single_image:
+            single_input, single_record = monocular_views(single_input, self.settings.seed)
         single_image = self.fit(world_name, subject, [frontal], "two-stage single image", views=single_input)
         return {
             "source": "world answers relit by image-based relighting (weights recovered from the answers)",
@@ -471,6 +479,7 @@ class Evaluation:
             "seen_in_training": self.seen_in_training(world_name, subject),
             "cameras": cameras,
             "single_image_camera": frontal,
+            "single_image_input": single_record,
             "envmaps": envmaps,
             "weight_fit_max_residual": max(c.extra["weight_fit_max_residual"] for c in cases),
             "rows": {
