@@ -7,8 +7,8 @@ Three *arms* are trained on the same data with the same budget and compared on t
 * ``colour-matrix``: no lighting codes either, but every flat-lit dataset aligned to the OLAT dataset by a
   learned 3×3 colour matrix first (``align-colour`` with every flat dataset ``--uncalibrated``).
 
-An arm is a stage-1 run and the stage-2 run trained on it. The budget of a run is read from its
-``run.json``: iterations × views per iteration × processes.
+An arm is a stage-1 run and the stage-2 run trained on it; its budget is read from the runs
+(:mod:`relightanyone.model.train.budget`).
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from pathlib import Path
 
 from relightanyone.errors import InputError
 from relightanyone.model.fit.fitter import RelightableModel, load_relightable_model
+from relightanyone.model.train.budget import run_budget, two_stage_budget
 from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
 
@@ -28,36 +29,6 @@ ARM_ROWS = {
     "no-zl": "without_lighting_code",
     "colour-matrix": "colour_matrix",
 }
-
-
-def run_budget(run: Path) -> dict:
-    """Training budget of a run folder: {stage, iterations, batch_size, processes, samples}.
-
-    samples = iterations × batch_size × processes: the views the run trained on.
-    """
-    path = Path(run) / RUN_INFO_NAME
-    if not path.is_file():
-        raise InputError(f"{path}: not a training run (no {RUN_INFO_NAME}); pass a run folder")
-    info = json.loads(path.read_text())
-    try:
-        iterations = int(info["preset"]["iterations"])
-        batch_size = int(info["preset"]["batch_size"])
-    except (KeyError, TypeError, ValueError) as error:
-        raise InputError(f"{path}: the run's preset lacks iterations or batch_size ({error})") from error
-    processes = int(info.get("processes", 1))
-    return {
-        "stage": info.get("stage"),
-        "iterations": iterations,
-        "batch_size": batch_size,
-        "processes": processes,
-        "samples": iterations * batch_size * processes,
-    }
-
-
-def two_stage_budget(stage1: Path, stage2: Path) -> dict:
-    """Budget of a stage-1 run plus the stage-2 run on it: each run's budget and the total samples."""
-    first, second = run_budget(stage1), run_budget(stage2)
-    return {"stage1": first, "stage2": second, "samples": first["samples"] + second["samples"]}
 
 
 def single_run_budget(run: Path) -> dict:

@@ -28,7 +28,6 @@ from relightanyone.evaluation.ablation import (
     budgets_agree,
     load_arms,
     single_run_budget,
-    two_stage_budget,
 )
 from relightanyone.evaluation.cases import (
     EvalView,
@@ -60,6 +59,7 @@ from relightanyone.format.torch_dataset import NormalizedTorchDataset, image_hwc
 from relightanyone.model.fit.avatar import check_pinhole_cameras, decoded_avatar, relight_views
 from relightanyone.model.fit.fitter import FitSettings, Fitter, load_relightable_model
 from relightanyone.model.fit.views import FitViews, load_fit_views
+from relightanyone.model.train.budget import two_stage_budget
 from relightanyone.model.train.run_files import RUN_INFO_NAME
 from relightanyone.render.lights import PointLights
 
