@@ -42,8 +42,9 @@ from relightanyone.cli_options import (
     "--single-stage",
     "single_stage",
     type=EXISTING_FOLDER,
-    default=None,
-    help="Single-stage baseline run (Table 1 compares it when given).",
+    multiple=True,
+    help="Single-stage baseline run (Table 1 compares it when given). Repeat for its loss variants: the "
+    "one with the best OLAT relighting of the OLAT dataset's validation subjects is the baseline.",
 )
 @click.option(
     "--ablation",
@@ -121,7 +122,7 @@ def evaluate_command(
     data: tuple[str, ...],
     stage1: Path,
     stage2: Path,
-    single_stage: Path | None,
+    single_stage: tuple[Path, ...],
     ablation: tuple[tuple[str, Path, Path], ...],
     ablation_fits: bool,
     unknown_lighting: bool,
@@ -156,7 +157,8 @@ def evaluate_command(
         datasets=world_datasets(data, answers),
         stage1=stage1,
         stage2=stage2,
-        single_stage=single_stage,
+        single_stage=single_stage[0] if single_stage else None,
+        single_stage_variants=tuple(single_stage[1:]),
         answers=answers,
         ablation=arms,
     )

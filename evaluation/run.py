@@ -39,6 +39,7 @@ def run_evaluation(
     evaluation = Evaluation(inputs, settings)
     results = evaluation.run()
     results["settings"] = asdict(settings)
+    inputs = evaluation.inputs  # the single-stage run chosen on validation subjects, when there was a choice
     results["inputs"] = {
         "world": None if inputs.answers is None else str(inputs.answers.world),
         "datasets": {k: str(v) for k, v in inputs.datasets.items()},

@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -28,6 +29,11 @@ from relightanyone.evaluation.ablation import (
     budgets_agree,
     load_arms,
     single_run_budget,
+)
+from relightanyone.evaluation.baseline_choice import (
+    choose_baseline,
+    require_validation,
+    validation_subjects,
 )
 from relightanyone.evaluation.cases import (
     EvalView,
@@ -95,6 +101,8 @@ class EvaluationInputs:
     stage1: Path
     stage2: Path
     single_stage: Path | None = None
+    # Further single-stage runs (other loss variants): the baseline is the best on validation subjects.
+    single_stage_variants: tuple[Path, ...] = ()
     answers: WorldAnswers | None = None
     # Lighting-code ablation arms: arm name (``with-zl``, ``no-zl``, ``colour-matrix``) -> (stage 1, stage 2)
     ablation: dict[str, tuple[Path, Path]] = field(default_factory=dict)
@@ -246,10 +254,6 @@ class Evaluation:
         self.settings = settings
         self.model = load_relightable_model(inputs.stage1, inputs.stage2)
         self.arms = load_arms(inputs.ablation, self.model, inputs.stage1, inputs.stage2)
-        self.budgets = self._budgets()
-        self.single = None
-        if inputs.single_stage is not None:
-            self.single = load_single_stage_run(inputs.single_stage)
         available, reason = lpips_status()
         self.lpips = LpipsMetric() if available else None
         self.lpips_note = reason
@@ -260,6 +264,36 @@ class Evaluation:
         self.grids: dict[str, list] = {}
         self.input_lightings: dict[str, dict] = {}
         self.inputs_images: dict[str, np.ndarray] = {}
+        self.single = None
+        candidates = [c for c in (inputs.single_stage, *inputs.single_stage_variants) if c is not None]
+        if len(candidates) > 1:
+            self.single, chosen, self.results["baseline_choice"] = self.choose_single_stage(candidates)
+            self.inputs = dataclasses.replace(inputs, single_stage=chosen, single_stage_variants=())
+        elif candidates:
+            self.single = load_single_stage_run(candidates[0])
+        self.budgets = self._budgets()
+
+    def choose_single_stage(self, candidates: list[Path]):
+        """(run, its folder, the record of the choice): the single-stage candidate with the best OLAT
+        relighting on the OLAT dataset's validation subjects (:mod:`relightanyone.evaluation.baseline_choice`)."""
+        path = self.inputs.datasets[self.olat_world]
+        subjects = validation_subjects(path, self.inputs.answers, self.olat_world)
+        require_validation(subjects, path, len(candidates))
+        runs = {str(c): load_single_stage_run(c) for c in candidates}
+        scores: dict[str, list[float]] = {str(c): [] for c in candidates}
+        for subject in subjects:
+            cameras, _ = subject_cameras(path, subject, self.settings.max_views)
+            cases = row_olat_cases(path, subject, self.model.rig, self.light_indices, cameras)
+            if not cases:
+                raise InputError(
+                    f"{path}: validation subject {subject!r} has no OLAT rows to score the baseline on"
+                )
+            for candidate in candidates:
+                label = f"single-stage validation, {Path(candidate).name}"
+                avatar = self.fit(self.olat_world, subject, cameras, label, single_run=runs[str(candidate)])
+                scores[str(candidate)] += compare(avatar, cases, None).scores["psnr"]
+        best, record = choose_baseline(candidates, scores)
+        return runs[str(best)], Path(best), record | {"subjects": subjects}
 
     def _budgets(self) -> dict[str, dict]:
         """Training budget of the model behind every table row (row name -> budget)."""
@@ -301,6 +335,7 @@ class Evaluation:
         single=False,
         data: Path | None = None,
         views: FitViews | None = None,
+        single_run=None,
     ):
         """Fit ``views``, by default the subject's full-on frame in ``cameras`` (read from ``data``, default
         the evaluated dataset); returns the avatar (timed under ``label``)."""
@@ -310,8 +345,8 @@ class Evaluation:
         self.inputs_images.setdefault(f"{world_name}/{subject}", views.images[0].permute(1, 2, 0).numpy())
         torch.manual_seed(self.settings.seed)
         start = time.perf_counter()
-        if single:
-            fitter = SingleStageFitter(self.single, views, self.fit_settings())
+        if single or single_run is not None:
+            fitter = SingleStageFitter(single_run or self.single, views, self.fit_settings())
         else:
             fitter = Fitter(model or self.model, views, self.fit_settings())
         fitter.invert()

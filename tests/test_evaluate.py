@@ -388,3 +388,55 @@ def test_held_out_inputs_are_lit_by_an_unknown_lighting(evaluated):
     # The single-image fit gets what one image yields (see test_single_image.py).
     single = table2["single_image_input"]
     assert single["mask"].startswith("foreground") and "generic_fov_deg" in single["focal"]
+
+
+def test_the_baseline_variant_is_chosen_on_validation_subjects_only(evaluated, tmp_path):
+    """Several single-stage runs: the one with the best validation relighting is Table 1's baseline; with no
+    validation subjects the choice is refused instead of being made on test subjects."""
+    import shutil
+
+    from helpers.sphere_world import tiny_stage1_preset, tiny_stage2_preset
+
+    from relightanyone.errors import InputError
+    from relightanyone.evaluation.tables import Evaluation, EvaluationInputs, EvaluationSettings
+    from relightanyone.model.train.stage2 import Stage2Config, train_stage2
+
+    paths = evaluated["paths"]
+    masked = tmp_path / "single-masked"
+    train_stage2(
+        Stage2Config(
+            paths["data"],
+            masked,
+            tiny_stage2_preset(),
+            single_stage=True,
+            single_stage_loss="masked",
+            stage1_preset=tiny_stage1_preset(iterations=4, crop_size=SIZE, held_out_cameras=0),
+            progress=False,
+        )
+    )
+    settings = EvaluationSettings(inversion_iterations=1, finetune_iterations=1, max_views=2, progress=False)
+
+    def inputs(world: Path) -> EvaluationInputs:
+        return EvaluationInputs(
+            datasets={"d1": paths["data"], "d2": paths["flat"]},
+            stage1=paths["stage1"],
+            stage2=paths["stage2"],
+            single_stage=paths["single_stage"],
+            single_stage_variants=(masked,),
+            answers=WorldAnswers(world),
+        )
+
+    with pytest.raises(InputError, match="no validation subjects"):
+        Evaluation(inputs(evaluated["world"]), settings)
+    world = tmp_path / "world"
+    shutil.copytree(evaluated["world"], world)
+    splits = json.loads((world / "answers" / "splits.json").read_text())
+    splits["d1"]["s01"] = "val"  # a training-split subject with OLAT rows, never a test subject
+    (world / "answers" / "splits.json").write_text(json.dumps(splits))
+    evaluation = Evaluation(inputs(world), settings)
+    choice = evaluation.results["baseline_choice"]
+    assert choice["subjects"] == ["s01"] and len(choice["candidates"]) == 2
+    scores = {run: entry["validation_psnr"] for run, entry in choice["candidates"].items()}
+    assert choice["chosen"] == max(scores, key=scores.get)
+    assert str(evaluation.inputs.single_stage) == choice["chosen"]
+    assert "masked loss" in choice["candidates"][str(masked)]["label"]
