@@ -40,6 +40,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from relightanyone.align.geometry import fold_head_pose
+from relightanyone.format.schema import check_name
 from relightanyone.ingest.adapter_common import adapter_plan, root_relative
 from relightanyone.ingest.calibration import (
     AVA_FULL_SENSOR,
@@ -84,9 +85,8 @@ def capture_folders(src: Path) -> list[Path]:
 def subject_of(capture: Path) -> str:
     """Subject id of a capture folder: ``{mcd}--{mct}--{sid}`` or ``m--{mcd}--{mct}--{sid}--GHS`` -> sid."""
     parts = capture.name.split("--")
-    if parts[0] == "m" and len(parts) >= 4:
-        return parts[3]
-    return parts[-1]
+    subject = parts[3] if parts[0] == "m" and len(parts) >= 4 else parts[-1]
+    return check_name(subject, "subject", str(capture))
 
 
 def detect(src: Path) -> str:

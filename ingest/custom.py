@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from relightanyone.align.colour import colour_matrix_problem
+from relightanyone.format.schema import check_name
 from relightanyone.ingest.records import (
     AdapterOptions,
     ColourCalibration,
@@ -188,7 +189,7 @@ def plan(src: Path, options: AdapterOptions | None = None) -> DatasetPlan:
             f"{src / 'images'} has no subject folders (expected images/<subject>/<frame>/<camera>.<ext>)"
         )
     for subject_dir in subject_dirs:
-        subject = subject_dir.name
+        subject = check_name(subject_dir.name, "subject", str(subject_dir))
         if not options.keeps_subject(subject):
             continue
         meshes = _mesh_paths(src, subject)

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from relightanyone.align.colour import read_faceolat_colour_matrix
+from relightanyone.format.schema import check_name
 from relightanyone.ingest.adapter_common import adapter_plan
 from relightanyone.ingest.calibration import CalibrationError
 from relightanyone.ingest.metashape import read_metashape_xml
@@ -239,7 +240,7 @@ def _scan_frames(src: Path, ext: str) -> dict[str, dict[str, dict[str, dict[int,
     for root in [src / folder, *sorted(src.glob(f"*/{folder}"))]:
         if not root.is_dir():
             continue
-        owner = None if root.parent == src else root.parent.name
+        owner = None if root.parent == src else check_name(root.parent.name, "subject", str(root.parent))
         for camera_dir in sorted(p for p in root.iterdir() if p.is_dir()):
             for capture_dir in sorted(p for p in camera_dir.iterdir() if p.is_dir()):
                 subject = owner or _subject_of_capture(capture_dir.name)

@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from relightanyone.align.colour import read_nersemble_colour_calibration, read_nersemble_v1_affine
+from relightanyone.format.schema import check_name
 from relightanyone.ingest.adapter_common import adapter_plan, root_relative
 from relightanyone.ingest.calibration import (
     NERSEMBLE_FULL_SENSOR,
@@ -438,7 +439,7 @@ def plan(src: Path, options: AdapterOptions) -> DatasetPlan:
     version = detect(src)
     subjects, sequences, facts = [], {}, {}
     for folder in participant_folders(src):
-        subject = folder.name
+        subject = check_name(folder.name, "subject", str(folder))
         if not options.keeps_subject(subject):
             continue
         subject_plan = SubjectPlan(subject=subject, split=options.split_of(subject), views=[])

@@ -28,7 +28,6 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from relightanyone.align.geometry import (
     decompose_similarity,
@@ -47,6 +46,7 @@ from relightanyone.format.schema import (
     LightRow,
     Provenance,
     QuarantineEntry,
+    check_name,
     fingerprint_config,
 )
 from relightanyone.format.shards import ShardWriter
@@ -62,6 +62,7 @@ from relightanyone.ingest.tracking import (
     shipped_tracking,
 )
 from relightanyone.parallel import Executor
+from relightanyone.progress import progress_bar
 
 # Square crop side per preset (docs/ingest.md: tiny/demo 128², small 512², paper 1024²).
 PRESET_SIZES = {"tiny": 128, "demo": 128, "small": 512, "paper": 1024}
@@ -135,7 +136,20 @@ def task_name(subject: str) -> str:
 
 
 def subject_tracking_folder(tracking_dir: Path, subject: str) -> Path:
-    return Path(tracking_dir) / subject
+    return Path(tracking_dir) / check_name(subject, "subject", f"tracking folder {tracking_dir}")
+
+
+def check_plan_names(plan: DatasetPlan) -> None:
+    """Raise ``UnsafeNameError`` for a dataset, subject, camera or pattern name of ``plan`` that is not one
+    safe file name, naming the native file it came from. Every adapter's plan passes here before any
+    path is built from its names (tracking folders, parts, rows, exports)."""
+    check_name(plan.dataset, "dataset", f"{plan.source_root} (--name or the {plan.layout} adapter)")
+    for subject in plan.subjects:
+        check_name(subject.subject, "subject", plan.source_root)
+        for view in subject.views:
+            where = f"{plan.source_root}/{view.source}"
+            check_name(view.camera.name, "camera", where)
+            check_name(view.pattern, "pattern", where)
 
 
 def check_tracking_dir(tracking_dir: Path, subjects: list[str]) -> None:
@@ -143,7 +157,9 @@ def check_tracking_dir(tracking_dir: Path, subjects: list[str]) -> None:
     tracking_dir = Path(tracking_dir)
     if not tracking_dir.is_dir():
         raise FileNotFoundError(f"tracking folder {tracking_dir} does not exist")
-    if not subjects or any((tracking_dir / s / TRANSFORMS_NAME).is_file() for s in subjects):
+    if not subjects or any(
+        (subject_tracking_folder(tracking_dir, s) / TRANSFORMS_NAME).is_file() for s in subjects
+    ):
         return
     nested = sorted(
         p.name for p in tracking_dir.iterdir() if p.is_dir() and any((p / s).is_dir() for s in subjects)
@@ -370,6 +386,7 @@ def prepare(
 
     if preset not in PRESET_SIZES:
         raise ValueError(f"unknown preset {preset!r}; expected one of {', '.join(PRESET_SIZES)}")
+    check_plan_names(plan)
     if tracking_dir is None and not any(s.meshes for s in plan.subjects):
         raise InputError(
             f"{plan.source_root}: the {plan.layout} layout ships no tracked meshes; pass --tracking DIR "
@@ -438,7 +455,7 @@ def run_tasks(
 ) -> list:
     """``run_subject_task(writer, settings, task)`` for every task on ``executor``; the results in task
     order. The progress bar counts views of finished subjects; the longest subjects start first."""
-    bar = tqdm(
+    bar = progress_bar(
         total=sum(len(t.plan.views) for t in tasks),
         desc=f"ingest {settings.dataset}",
         unit="view",

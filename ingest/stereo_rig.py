@@ -37,6 +37,7 @@ import numpy as np
 
 from relightanyone.align.chart import ChartNotFoundError, fit_chart_correction
 from relightanyone.align.colour import colour_matrix_problem
+from relightanyone.format.schema import check_name
 from relightanyone.ingest.adapter_common import adapter_plan
 from relightanyone.ingest.calibration import CalibrationError, from_colmap
 from relightanyone.ingest.decode import DecodeError, decode_bytes
@@ -238,7 +239,7 @@ def _plan_subject(
     calibrations: dict[str, ColourCalibration],
     options: AdapterOptions,
 ) -> SubjectPlan:
-    subject = folder.name
+    subject = check_name(folder.name, "subject", str(folder))
     plan = SubjectPlan(subject=subject, split=options.split_of(subject), views=[])
     present = {p.stem: p for p in sorted(folder.glob("*.dng"))}
     for name in sorted(set(present) - set(cameras)):

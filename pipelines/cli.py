@@ -12,6 +12,7 @@ import click
 
 from relightanyone.cli_options import EXISTING_FOLDER, dry_run_option, names_option, out_option, quiet_option
 from relightanyone.errors import InputError
+from relightanyone.os_errors import check_writable
 from relightanyone.pipelines.expand.command import expand_command
 from relightanyone.pipelines.report.command import report_command
 
@@ -93,6 +94,8 @@ def run_command(
         if blocked:
             raise click.ClickException(f"stage(s) {', '.join(blocked)} would stop the run: fix their inputs")
         return
+    for stage in loaded.stages.values():  # an unwritable output stops the run before any stage starts
+        check_writable(stage.output)
     results = execute(
         loaded,
         force=force,

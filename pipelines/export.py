@@ -29,8 +29,10 @@ import numpy as np
 from relightanyone.errors import RelightAnyoneError
 from relightanyone.format.arrow_io import atomic_write_bytes
 from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
-from relightanyone.format.schema import MANIFEST_NAME, SchemaError
+from relightanyone.format.schema import INDEX_NAME, MANIFEST_NAME, SchemaError, check_name
 from relightanyone.format.shards import dataset_dirs
+from relightanyone.os_errors import naming_file
+from relightanyone.progress import progress_bar
 
 EXPORT_CONVENTIONS = {
     "colour": "scene-linear RGB after the dataset's colour calibration",
@@ -72,12 +74,18 @@ def _write_file(path: Path, data: bytes) -> None:
     """Temporary name then rename: a reader never sees a truncated file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(path.name + ".tmp")
-    temporary.write_bytes(data)
+    with naming_file(temporary):  # a failed write (a full disk) names no file
+        temporary.write_bytes(data)
     os.replace(temporary, path)
 
 
-def image_paths(subject: str, frame: int, camera: str, pattern: str) -> tuple[str, str]:
-    """Relative (image, mask) file names of one image row in the export folder."""
+def image_paths(
+    subject: str, frame: int, camera: str, pattern: str, where: str = "image row"
+) -> tuple[str, str]:
+    """Relative (image, mask) file names of one image row in the export folder; ``UnsafeNameError`` naming
+    ``where`` when a name is not one safe file name, so no file lands outside the folder."""
+    for what, name in (("subject", subject), ("camera", camera), ("pattern", pattern)):
+        check_name(name, what, where)
     folder = f"{subject}/{int(frame):06d}/{camera}"
     return f"{folder}/{pattern}.exr", f"{folder}/{pattern}.mask.png"
 
@@ -130,8 +138,6 @@ def export_dataset(
     Returns a summary ``{"dataset", "images", "subjects", "lights"}``. Raises ExportError for a folder that
     is not one complete dataset or for unknown ``subjects``.
     """
-    from tqdm import tqdm
-
     if precision not in ("float", "half"):
         raise ExportError(f"precision {precision!r}: expected 'float' or 'half'")
     dataset = _open_dataset(Path(dataset_dir))
@@ -143,13 +149,23 @@ def export_dataset(
                 f"(subjects: {', '.join(dataset.subjects)})"
             )
     keys = dataset.select(subjects=list(subjects) if subjects else None)
+    # Every name is checked before the first file is written, so a bad one leaves no partial export.
+    for what, names in (
+        ("subject", dataset.subjects),
+        ("camera", dataset.cameras),
+        ("pattern", dataset.patterns),
+    ):
+        for name in names:
+            check_name(name, what, str(dataset.path / INDEX_NAME))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "dataset.json").unlink(missing_ok=True)  # incomplete until rewritten at the end
     cameras = []
-    for key in tqdm(keys, desc=f"export {dataset.name}", unit="image", disable=not progress):
+    for key in progress_bar(keys, desc=f"export {dataset.name}", unit="image", disable=not progress):
         row, image, _ = dataset.decoded(key)
-        image_file, mask_file = image_paths(row.subject, row.frame, row.camera, row.pattern)
+        image_file, mask_file = image_paths(
+            row.subject, row.frame, row.camera, row.pattern, where=f"{dataset.path} row {key!r}"
+        )
         _write_file(out / image_file, encode_exr(image, precision))
         _write_file(out / mask_file, row.mask)  # already an 8-bit PNG: copied as stored
         cameras.append(camera_entry(row, image_file, mask_file))

@@ -15,11 +15,14 @@ its traceback.
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 
 import click
 
 from relightanyone import __version__
 from relightanyone.errors import RelightAnyoneError
+from relightanyone.os_errors import OUTPUT_META_KEY, os_error_line
+from relightanyone.progress import PROGRESS_META_KEY, progress_bar
 from relightanyone.render.errors import FileFormatError
 from relightanyone.synth.errors import WorldError
 
@@ -55,16 +58,11 @@ COMMAND_ORDER = (
 EXPECTED_FAILURES = (RelightAnyoneError, FileFormatError, WorldError, OSError)
 
 
-def failure_line(error: BaseException) -> str:
-    """The one line an expected failure is reported as: ``path: reason`` for an OSError that names its
-    file (``path -> other: reason`` for a rename), otherwise the message, its lines joined by "; "."""
-    if isinstance(error, OSError) and error.filename is not None:
-        where = str(error.filename)
-        if error.filename2 is not None:
-            where += f" -> {error.filename2}"
-        text = f"{where}: {error.strerror or error}"
-    else:
-        text = str(error) or type(error).__name__
+def failure_line(error: BaseException, output: Path | str | None = None) -> str:
+    """The one line an expected failure is reported as: for an OSError the path (its file, else ``output``,
+    the folder the command writes), the problem and what to do (:func:`os_error_line`); otherwise the
+    message, its lines joined by "; "."""
+    text = os_error_line(error, output) if isinstance(error, OSError) else str(error) or type(error).__name__
     return "; ".join(line.strip() for line in text.splitlines() if line.strip())
 
 
@@ -83,7 +81,7 @@ class RelightAnyoneGroup(click.Group):
                 raise click.ClickException(failure_line(error.format_message())) from None
             raise
         except EXPECTED_FAILURES as error:
-            raise click.ClickException(failure_line(error)) from None
+            raise click.ClickException(failure_line(error, ctx.meta.get(OUTPUT_META_KEY))) from None
 
 
 def _gather_commands() -> dict[str, click.Command]:
@@ -115,6 +113,8 @@ def cli() -> None:
     `relightanyone COMMAND --help` for its options. Real downloads (or a synthetic world) are ingested
     into normalized datasets, checked, and used to train the model.
     """
+    # Synth cannot import the project: its command takes the progress report from here.
+    click.get_current_context().meta[PROGRESS_META_KEY] = progress_bar
 
 
 for _name, _command in _gather_commands().items():

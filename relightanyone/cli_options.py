@@ -13,6 +13,7 @@ from typing import Any
 
 import click
 
+from relightanyone.os_errors import OUTPUT_META_KEY, check_writable
 from relightanyone.parallel import EXECUTORS
 
 # The size presets of ingest (crop size) and of the model (network size and schedule).
@@ -55,10 +56,24 @@ def names_option(name: str, help: str, metavar: str = "A,B") -> Decorator:
 
 
 def out_option(help: str, *, file: bool = False, required: bool = True, dest: str | None = None) -> Decorator:
-    """``--out``: the folder (or, with ``file``, the file) a command writes."""
+    """``--out``: the folder (or, with ``file``, the file) a command writes. It is probed while the command
+    line is parsed (:func:`check_writable`), so a read-only or unwritable place stops the command before it
+    plans anything, and it is recorded for the error boundary (an OS error that names no file)."""
     declarations = ("--out", dest) if dest else ("--out",)
+
+    def writable(ctx: click.Context, param: click.Parameter, value: Path | None) -> Path | None:
+        if value is not None and not ctx.resilient_parsing:
+            ctx.meta[OUTPUT_META_KEY] = value
+            check_writable(value.parent if file else value)
+        return value
+
     return click.option(
-        *declarations, type=FILE if file else FOLDER, required=required, default=None, help=help
+        *declarations,
+        type=FILE if file else FOLDER,
+        required=required,
+        default=None,
+        callback=writable,
+        help=help,
     )
 
 

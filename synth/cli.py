@@ -71,8 +71,11 @@ def synth_command(
 
     chosen = _parse_datasets(datasets)
     workers = workers or max(1, min(2, os.cpu_count() or 1))
+    # The command line's progress report (a bar on a terminal, lines in a log) when it provides one: synth
+    # imports nothing of the project, so it takes the report from the click context.
+    progress = click.get_current_context().meta.get("relightanyone.progress", True)
     world = generate_world(
-        out, preset, seed=seed, datasets=chosen, progress=True, overwrite=overwrite, workers=workers
+        out, preset, seed=seed, datasets=chosen, progress=progress, overwrite=overwrite, workers=workers
     )
     click.echo(f"wrote {preset} world (seed {seed}) with {', '.join(world['datasets'])} to {out}")
     click.echo(f"preview it with: relightanyone synth-preview {out} --out {out / 'contact-sheet.png'}")

@@ -26,7 +26,9 @@ from __future__ import annotations
 import importlib
 import json
 import shutil
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -338,7 +340,7 @@ def generate_world(
     preset: str | Preset,
     seed: int = 0,
     datasets=("d1", "d2", "d3", "d4"),
-    progress: bool = True,
+    progress: bool | Callable[..., Any] = True,
     overwrite: bool = False,
     workers: int = 1,
 ) -> dict:
@@ -346,6 +348,8 @@ def generate_world(
 
     preset: "tiny", "demo", "paper" or a :class:`Preset`; datasets: any of d1..d4, in any order.
     workers: processes generating datasets side by side (the bytes do not depend on it).
+    progress: a tqdm bar when True, none when False, or the function that makes the progress report
+        (called like ``tqdm(total=..., desc=..., unit=...)``; the command line passes its own).
     Raises ValueError for unknown datasets or impossible sizes, ``WorldError`` for a non-empty ``out``
     without ``overwrite``.
     """
@@ -360,7 +364,8 @@ def generate_world(
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=expected_work(preset, datasets), desc=f"synth {preset.name}", unit="render")
+        make_bar = progress if callable(progress) else tqdm
+        bar = make_bar(total=expected_work(preset, datasets), desc=f"synth {preset.name}", unit="render")
     try:
         template = make_template(preset.template_segments)
         answers = out / "answers"

@@ -60,14 +60,23 @@ def test_a_bug_keeps_its_traceback():
     assert isinstance(result.exception, KeyError)
 
 
-def test_failure_line_names_the_file_of_an_os_error():
-    assert (
-        failure_line(PermissionError(13, "Permission denied", "/data/out")) == "/data/out: Permission denied"
+def test_failure_line_names_the_file_of_an_os_error_and_what_to_do():
+    assert failure_line(PermissionError(13, "Permission denied", "/data/out")) == (
+        "/data/out: Permission denied; make it writable (permissions, owner) or write somewhere else"
     )
     assert failure_line(OSError(18, "Invalid cross-device link", "a.tmp", None, "b")) == (
         "a.tmp -> b: Invalid cross-device link"
     )
-    assert failure_line(OSError(28, "No space left on device")) == "[Errno 28] No space left on device"
+    # pyarrow's full disk names no file: the folder the command writes stands in for it.
+    full = OSError(28, "Error writing bytes to file. Detail: [errno 28] No space left on device")
+    assert failure_line(full, "/data/out") == (
+        "/data/out (being written): Error writing bytes to file. Detail: [errno 28] No space left on device; "
+        "free space on that disk or write somewhere else, then run the command again (it resumes)"
+    )
+    assert (
+        failure_line(FileNotFoundError("tracking folder t does not exist"))
+        == "tracking folder t does not exist"
+    )
     assert failure_line(ValueError("x.json: bad\n  detail")) == "x.json: bad; detail"
 
 

@@ -30,8 +30,12 @@ from relightanyone.format.schema import (
     Manifest,
     Provenance,
     SchemaError,
+    UnsafeNameError,
     camera_problems,
+    check_name,
     make_image_key,
+    make_mesh_key,
+    name_problem,
 )
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "format.md"
@@ -192,8 +196,27 @@ def test_bad_rows_name_the_key_and_the_field():
     row.K = row.K * np.array([[-1, 1, 1], [1, 1, 1], [1, 1, 1]])
     with pytest.raises(SchemaError, match=r"example/s000/000000/cam00/full.*focal"):
         row.to_arrow_dict()
-    with pytest.raises(SchemaError, match="must not contain '/'"):
+    with pytest.raises(SchemaError, match="subject name 'a/b' contains a path separator"):
         make_image_key("d", "a/b", 0, "c", "full")
+
+
+UNSAFE_NAMES = ("..", ".", "", "a/b", "a\\b", ".hidden", "nul\x00byte", "line\nbreak", "é" * 65)
+
+
+@pytest.mark.parametrize("name", UNSAFE_NAMES)
+def test_a_name_that_is_not_one_safe_file_name_is_refused(name):
+    assert name_problem(name) is not None
+    with pytest.raises(UnsafeNameError, match=r"^capture/x: camera name .* rename it"):
+        check_name(name, "camera", "capture/x")
+    with pytest.raises(UnsafeNameError):
+        make_image_key("d", name, 0, "c", "full")
+    with pytest.raises(UnsafeNameError):
+        make_mesh_key(name, 0)
+
+
+@pytest.mark.parametrize("name", ("s000", "cam-01", "EXP_neutral", "220700191", "env-studio.small", "é" * 64))
+def test_ordinary_names_are_safe(name):
+    assert name_problem(name) is None and check_name(name, "subject", "here") == name
 
 
 def test_camera_checks():

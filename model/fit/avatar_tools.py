@@ -30,6 +30,7 @@ from relightanyone.model.fit.avatar import (
 )
 from relightanyone.model.fit.lighting_choice import NamedLighting, safe_name
 from relightanyone.model.networks.render import orbit_cameras
+from relightanyone.progress import progress_bar
 from relightanyone.render.camera import Cameras
 from relightanyone.render.envmap import PrefilteredEnvmap, save_envmap
 
@@ -182,13 +183,13 @@ def render_frames(
     Yields:
         ``(camera name, lighting label, image (3, H, W) linear RGB)``, one frame at a time.
     """
-    from tqdm import tqdm
-
     width, height = check_pinhole_cameras(cameras)
     names = cameras.names or tuple(f"cam{i:03d}" for i in range(len(cameras)))
     device = avatar.means.device
     lightings = [NamedLighting(named.label, lighting_to(named.lighting, device)) for named in lightings]
-    bar = tqdm(total=len(cameras) * len(lightings), desc="relight", unit="frame", disable=not progress)
+    bar = progress_bar(
+        total=len(cameras) * len(lightings), desc="relight", unit="frame", disable=not progress
+    )
     with bar, torch.no_grad():
         for index, name in enumerate(names):
             w2c = cameras.w2c[index : index + 1].to(device, torch.float32)

@@ -55,6 +55,7 @@ from relightanyone.model.train.losses import (
 from relightanyone.model.train.run import load_run
 from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
 from relightanyone.model.train.sampling import iteration_generator
+from relightanyone.progress import progress_bar
 from relightanyone.render.lights import PointLights, full_on_rig_from_table, olat_rig_from_table
 
 VIEW_STREAM = 10  # generator streams of the fit (views per step, locality codes, backgrounds)
@@ -411,17 +412,14 @@ class Fitter:
     def _optimize(
         self, phase: str, optimizer: torch.optim.Optimizer, iterations: int, loss_fn
     ) -> list[dict[str, float]]:
-        from tqdm import tqdm
-
         offset = 0 if phase == "inversion" else 1
         start = self.inversion_steps if phase == "inversion" else self.finetune_steps
         logged = []
-        for step in tqdm(
+        for step in progress_bar(
             range(start, start + iterations),
             desc=f"fit {self.views.subject}: {phase}",
             unit="it",
             disable=not self.settings.progress,
-            dynamic_ncols=True,
         ):
             total, terms = loss_fn(step, self.step_views(step, offset))
             if not math.isfinite(float(total.detach())):

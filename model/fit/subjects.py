@@ -10,6 +10,7 @@ from pathlib import Path
 
 from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset
+from relightanyone.format.schema import check_name
 from relightanyone.model.fit.fitter import FitSettings, fit_subject
 
 FIT_REPORT_NAME = "fit_report.json"
@@ -57,7 +58,7 @@ def fit_subjects(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     for subject in subjects:
-        target = out / f"{subject}.avatar"
+        target = out / f"{check_name(subject, 'subject', str(data))}.avatar"
         if target.is_file():
             yield SubjectFit(subject, target, kept=True)
             continue

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from relightanyone.errors import InputError
+from relightanyone.os_errors import naming_file
 
 REQUIRED_FIELDS = ("iteration", "model", "optimizer", "rng", "preset", "subjects", "seed")
 NUMPY_BIT_GENERATOR = "MT19937"
@@ -75,7 +76,7 @@ def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(temporary, "wb") as handle:
+    with naming_file(temporary), open(temporary, "wb") as handle:  # a failed write names no file
         torch.save(payload, handle)
         handle.flush()
         os.fsync(handle.fileno())

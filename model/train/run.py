@@ -24,6 +24,7 @@ from relightanyone.model.networks.render import grid, orbit_cameras, render_view
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
+from relightanyone.progress import progress_bar
 
 FOREGROUND_ALPHA = 0.5
 LIGHTING_GRID_NAME = "lighting_grid.png"
@@ -165,8 +166,6 @@ def render_subject(
     Returns a report: files, and when the lighting code is swapped, the mean foreground colour under
     both codes, their difference, and whether the geometry stayed identical.
     """
-    from tqdm import tqdm
-
     subject_index = run.subject_index(subject)
     own_dataset = run.subjects[subject_index].split("/", 1)[0]
     lighting = lighting_code or own_dataset
@@ -185,7 +184,7 @@ def render_subject(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     images, alphas = [], []
-    for index in tqdm(range(len(names)), desc=f"render {run.subjects[subject_index]}", unit="view"):
+    for index in progress_bar(range(len(names)), desc=f"render {run.subjects[subject_index]}", unit="view"):
         image, alpha = render_with_alpha(
             gaussians, K[index : index + 1], w2c[index : index + 1], width, height
         )
@@ -236,11 +235,9 @@ def colour_shift_report(
 def lighting_alignment_grid(run: Stage1Run, out_path: Path) -> dict:
     """One training subject per dataset (rows) rendered under every dataset's lighting code (columns),
     from the subject's first dataset camera, into one PNG. Returns the colour shifts measured."""
-    from tqdm import tqdm
-
     rows, shifts = [], {}
     size = None
-    for dataset in tqdm(run.datasets, desc="lighting grid", unit="subject"):
+    for dataset in progress_bar(run.datasets, desc="lighting grid", unit="subject"):
         subject_index = next(i for i, s in enumerate(run.subjects) if s.split("/", 1)[0] == dataset)
         _, K, w2c, width, height = subject_cameras(run, subject_index, limit=1)
         own = decode(run, subject_index, run.dataset_index(dataset))

@@ -44,6 +44,7 @@ from relightanyone.model.train.losses import composite_over_background, offset_w
 from relightanyone.model.train.memory import estimate_training_memory, format_memory
 from relightanyone.model.train.run_files import CHECKPOINT_NAME, METRICS_NAME, RUN_INFO_NAME
 from relightanyone.model.train.sampling import background_colours, balanced_batch
+from relightanyone.progress import progress_bar
 
 # Fields that shape the network: a checkpoint can only resume a run that agrees on all of them.
 ARCHITECTURE_FIELDS = ("uv_size", "z_id_dim", "z_l_dim", "start_channels", "min_channels", "mesh_hidden")
@@ -171,8 +172,6 @@ def _write_json(path: Path, payload: dict) -> None:
 
 def train_stage1(config: Stage1Config) -> dict:
     """Train (or resume) a stage-1 run; returns the metrics written to ``RUN/metrics.json``."""
-    from tqdm import tqdm
-
     group = setup_process_group()
     preset = config.preset
     out = Path(config.out)
@@ -218,13 +217,12 @@ def train_stage1(config: Stage1Config) -> dict:
     use_lighting = not config.warmup
     global_batch = preset.batch_size * group.world_size
     first_sample = group.rank * preset.batch_size
-    progress = tqdm(
+    progress = progress_bar(
         total=preset.iterations,
         initial=start,
         disable=not (config.progress and group.is_main),
         desc="stage1 warm-up" if config.warmup else "stage1",
         unit="it",
-        dynamic_ncols=True,
     )
     step_seconds = 0.0
     steps = 0

@@ -78,6 +78,7 @@ from relightanyone.model.train.sampling import (
     iteration_generator,
     random_crop,
 )
+from relightanyone.progress import progress_bar
 from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
 from relightanyone.render.sh import lambertian_transfer
 from relightanyone.render.shading import point_light_sh
@@ -470,7 +471,6 @@ class Stage2Trainer:
     def train(self) -> dict:
         """Train (or resume) to ``preset.iterations``; returns the metrics written to ``metrics.json``."""
         from torch.utils.tensorboard import SummaryWriter
-        from tqdm import tqdm
 
         out = Path(self.config.out)
         self.resume_if_possible()
@@ -480,13 +480,12 @@ class Stage2Trainer:
         writer = SummaryWriter(str(out / "tensorboard"), purge_step=self.start)
         self.trainable.train()
         mode = "single-stage" if self.config.single_stage else "stage2"
-        progress = tqdm(
+        progress = progress_bar(
             total=self.preset.iterations,
             initial=self.start,
             disable=not self.config.progress,
             desc=mode,
             unit="it",
-            dynamic_ncols=True,
         )
         history: list[dict[str, float]] = []
         seconds = 0.0

@@ -35,6 +35,7 @@ from typing import Any
 import yaml
 
 from relightanyone.errors import InputError
+from relightanyone.format.schema import check_name
 
 STAGE_NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 VARIABLE_PATTERN = re.compile(r"\$(\$|\{([A-Za-z_][A-Za-z0-9_.-]*)\})")
@@ -232,6 +233,7 @@ def _parse_stage(spec: PipelineSpec, name: str, body: Any) -> StageSpec:
     where = spec.where
     if not STAGE_NAME_PATTERN.match(name):
         raise PipelineError(f"{where('stages', name)}: stage names use letters, digits, '-', '_' and '.'")
+    check_name(name, "stage", where("stages", name))
     if not isinstance(body, dict):
         raise PipelineError(f"{where('stages', name)}: expected a mapping with run/command, output, inputs")
     unknown = sorted(set(body) - set(STAGE_KEYS))

@@ -24,8 +24,6 @@ from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
 
-from tqdm import tqdm
-
 from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import (
@@ -34,6 +32,7 @@ from relightanyone.format.schema import (
     DatasetInfo,
     LightRow,
     Manifest,
+    check_name,
     fingerprint_config,
 )
 from relightanyone.format.shards import ShardWriter
@@ -50,6 +49,7 @@ from relightanyone.pipelines.expand.inputs import (
 )
 from relightanyone.pipelines.expand.render import envmap_pattern
 from relightanyone.pipelines.expand.task import run_expand_task
+from relightanyone.progress import progress_bar
 
 TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 # What the local pool's server imports once, so each forked worker starts with them loaded.
@@ -175,9 +175,9 @@ def plan_expansion(
     """Check the inputs (loading both runs together once) and list the tasks; renders nothing."""
 
     source_data = NormalizedDataset(source)
-    name = name or f"{source_data.name}-olat"
-    if not name or "/" in name:
-        raise InputError(f"--name {name!r} must be a non-empty folder name without '/'")
+    name = check_name(name or f"{source_data.name}-olat", "dataset", "expand --name")
+    for envmap in envmaps or []:
+        check_name(envmap_pattern(Path(envmap)), "pattern", str(envmap))
     if min(fit_iterations) < 0:
         raise InputError(f"--fit-iterations must be >= 0, got {fit_iterations}")
     envmaps = [Path(p) for p in envmaps or []]
@@ -350,7 +350,7 @@ def run_expand_tasks(
     """
     runner = Executor(executor, workers, preload=WORKER_PRELOAD)
     total = sum(len(t.source_keys) for t in tasks) * images_per_view
-    bar = tqdm(total=total, desc=f"expand {settings.output.name}", unit="image", disable=not progress)
+    bar = progress_bar(total=total, desc=f"expand {settings.output.name}", unit="image", disable=not progress)
     try:
         if runner.in_process(len(tasks)):
             return runner.map(partial(run_expand_task, writer, settings, on_images=bar.update), tasks)

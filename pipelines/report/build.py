@@ -46,6 +46,7 @@ from relightanyone.pipelines.report.html import (
 )
 from relightanyone.pipelines.report.metrics import metrics_tables
 from relightanyone.pipelines.report.sheets import OVERVIEW_HEADER, olat_sheets, overview_row, subject_sheet
+from relightanyone.progress import progress_bar
 
 LIGHTING_GRID_CAPTION = (
     "Rows: one training subject of each dataset; columns: that subject decoded with each dataset's "
@@ -152,9 +153,7 @@ def _datasets_section(builder: _Builder, inputs: ReportInputs) -> str:
             items = "".join(f"<li><strong>{esc(n)}</strong>: {esc(text)}</li>" for n, text in lighting)
             body.append(f'<p class="muted">Lighting:</p><ul class="muted">{items}</ul>\n')
     if inputs.subject_sheets:
-        from tqdm import tqdm
-
-        for row in tqdm(good, desc="subject sheets", unit="dataset", disable=not builder.progress):
+        for row in progress_bar(good, desc="subject sheets", unit="dataset", disable=not builder.progress):
             try:
                 dataset = NormalizedDataset(row.path)
                 if len(dataset) == 0:

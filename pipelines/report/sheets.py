@@ -16,6 +16,7 @@ import numpy as np
 
 from relightanyone.format.preview import linear_to_srgb_preview, render_contact_sheet
 from relightanyone.format.schema import MANIFEST_NAME, QUARANTINE_NAME
+from relightanyone.progress import progress_bar
 
 OVERVIEW_HEADER = (
     "dataset",
@@ -214,13 +215,11 @@ def olat_sheets(dataset, camera: str | None, max_subjects: int, tile: int = 96, 
     comes first at its own exposure. Patterns that are neither rig lights nor ``full`` (the expansion's
     environment maps, ``env-<name>``) form a second sheet, each tile at its own exposure.
     """
-    from tqdm import tqdm
-
     light_names = {str(light["pattern"]): str(light["name"]) for light in dataset.lights()}
     olat_patterns = rig_patterns(dataset)
     other_patterns = [p for p in dataset.patterns if p not in set(olat_patterns) | {"full"}]
     index = index_entries(dataset)
-    for subject in tqdm(
+    for subject in progress_bar(
         dataset.subjects[:max_subjects],
         desc=f"OLAT sheets {dataset.name}",
         unit="subject",

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pyarrow as pa
 
+from relightanyone.os_errors import naming_file
+
 ZSTD_LEVEL = 3
 # The end-of-stream marker of the IPC stream format: continuation token, then a zero metadata length.
 STREAM_END = b"\xff\xff\xff\xff\x00\x00\x00\x00"
@@ -37,7 +39,7 @@ def fsync_dir(path: Path) -> None:
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` via ``path.tmp``, fsync, rename: readers see the old file or the new one."""
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as handle:
+    with naming_file(tmp), open(tmp, "wb") as handle:  # a failed write (a full disk) names no file
         handle.write(data)
         handle.flush()
         os.fsync(handle.fileno())
@@ -78,7 +80,8 @@ class StreamFileWriter:
                 self._sink, self.schema, options=ipc_write_options(self.compression_level)
             )
         offset = self._sink.tell()
-        self._writer.write_batch(batch)
+        with naming_file(self.tmp_path):  # pyarrow's write errors (a full disk) name no file
+            self._writer.write_batch(batch)
         self.offsets.append(offset)
         return offset
 
@@ -92,22 +95,24 @@ class StreamFileWriter:
             self._sink.write(self.schema.serialize())
             self._copying = True
         offset = self._sink.tell()
-        self._sink.write(message.serialize())
+        with naming_file(self.tmp_path):
+            self._sink.write(message.serialize())
         self.offsets.append(offset)
         return offset
 
     def finish(self) -> None:
         """Close the stream, fsync it and rename it to its final name."""
-        if self._copying:
-            self._sink.write(STREAM_END)
-        else:
-            if self._writer is None:  # an empty stream: the schema and the end marker
-                self._writer = pa.ipc.new_stream(
-                    self._sink, self.schema, options=ipc_write_options(self.compression_level)
-                )
-            self._writer.close()
-        self._sink.flush()
-        self._sink.close()
+        with naming_file(self.tmp_path):
+            if self._copying:
+                self._sink.write(STREAM_END)
+            else:
+                if self._writer is None:  # an empty stream: the schema and the end marker
+                    self._writer = pa.ipc.new_stream(
+                        self._sink, self.schema, options=ipc_write_options(self.compression_level)
+                    )
+                self._writer.close()
+            self._sink.flush()
+            self._sink.close()
         with open(self.tmp_path, "rb+") as handle:
             os.fsync(handle.fileno())
         os.replace(self.tmp_path, self.path)

@@ -73,11 +73,11 @@ def inspect_command(path: Path, out: Path | None, samples: int, overlay: Path | 
     """Summarize the normalized dataset(s) in PATH and optionally draw a contact sheet."""
     import cv2
     import numpy as np
-    from tqdm import tqdm
 
     from relightanyone.format.preview import render_contact_sheet
     from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
     from relightanyone.format.shards import dataset_dirs
+    from relightanyone.progress import progress_bar
 
     datasets = []
     for dataset_dir in dataset_dirs(path):
@@ -102,7 +102,7 @@ def inspect_command(path: Path, out: Path | None, samples: int, overlay: Path | 
         picks[i] for i in sorted(set(np.linspace(0, len(picks) - 1, min(samples, len(picks))).astype(int)))
     ]
     images, masks, labels = [], [], []
-    for dataset, key in tqdm(chosen, desc="contact sheet", unit="image"):
+    for dataset, key in progress_bar(chosen, desc="contact sheet", unit="image"):
         row, image, mask = dataset.decoded(key)
         images.append(image)
         masks.append(mask)

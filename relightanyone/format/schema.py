@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import unicodedata
 from collections.abc import Callable
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from functools import partial
@@ -167,17 +168,70 @@ class SchemaError(InputError):
     """A row or manifest does not follow the format; the message names the item and the field."""
 
 
-def make_image_key(dataset: str, subject: str, frame: int, camera: str, pattern: str) -> str:
-    """The unique key of an image row; sorts by dataset, subject, frame, camera, pattern."""
+class UnsafeNameError(SchemaError):
+    """A name that becomes a file or folder name (subject, camera, dataset, pattern, ...) is not safe as one;
+    the message names it, where it came from and what to do."""
+
+
+# The longest name that becomes one path component, in UTF-8 bytes: far below every file system's limit
+# (255), so a name plus a suffix (".avatar", ".mask.png", "-avatars") always fits.
+MAX_NAME_BYTES = 128
+
+
+def name_problem(name: Any) -> str | None:
+    """Why ``name`` cannot be one file or folder name, or None when it can.
+
+    The rule for every name that becomes a path component (subject, camera, frame, dataset, pattern, light
+    set, stage, export names): text, not empty, not ``.`` or ``..``, no leading dot, no ``/`` or ``\\``,
+    no control character (NUL included), valid UTF-8 of at most ``MAX_NAME_BYTES`` bytes. Such a name can
+    neither climb out of the folder it is written into nor hide in it.
+    """
+    if not isinstance(name, str):
+        return f"is a {type(name).__name__}, not text"
+    if not name:
+        return "is empty"
+    if name in (".", ".."):
+        return "names a folder itself (. or ..)"
+    if name.startswith("."):
+        return "starts with a dot (a hidden file)"
+    if "/" in name or "\\" in name:
+        return "contains a path separator (/ or \\)"
+    if any(unicodedata.category(c) == "Cc" for c in name):
+        return "contains a control character"
+    try:
+        size = len(name.encode("utf-8"))
+    except UnicodeEncodeError:
+        return "is not valid UTF-8"
+    if size > MAX_NAME_BYTES:
+        return f"is {size} bytes long, more than {MAX_NAME_BYTES}"
+    return None
+
+
+def check_name(name: Any, what: str, where: str) -> str:
+    """``name`` when it is safe as a file or folder name (:func:`name_problem`), else ``UnsafeNameError``
+    naming ``what`` it is (subject, camera, ...) and ``where`` it came from (a file or folder)."""
+    problem = name_problem(name)
+    if problem is not None:
+        raise UnsafeNameError(
+            f"{where}: {what} name {name!r} {problem}; it becomes a file or folder name, so rename it "
+            f"(letters, digits, '-', '_', no leading '.', at most {MAX_NAME_BYTES} bytes)"
+        )
+    return name
+
+
+def make_image_key(
+    dataset: str, subject: str, frame: int, camera: str, pattern: str, where: str = "image key"
+) -> str:
+    """The unique key of an image row; sorts by dataset, subject, frame, camera, pattern. Every part is a
+    safe file name (:func:`check_name`); ``where`` says where the row comes from, for the error."""
     for name, value in (("dataset", dataset), ("subject", subject), ("camera", camera), ("pattern", pattern)):
-        if not value or "/" in value:
-            raise SchemaError(f"{name} {value!r} must be non-empty and must not contain '/'")
+        check_name(value, name, where)
     return f"{dataset}/{subject}/{int(frame):06d}/{camera}/{pattern}"
 
 
 def make_mesh_key(subject: str, frame: int) -> str:
     """The unique key of a ``meshes.arrow`` row."""
-    return f"{subject}/{int(frame):06d}"
+    return f"{check_name(subject, 'subject', 'mesh key')}/{int(frame):06d}"
 
 
 @dataclass
@@ -188,12 +242,12 @@ class ImageRow:
     key: str = column(
         pa.string(), "unique: `<dataset>/<subject>/<frame:06d>/<camera>/<pattern>`; rows are sorted by it"
     )
-    dataset: str = column(pa.string(), "dataset name; no `/` inside")
-    subject: str = column(pa.string(), "subject id; no `/` inside")
+    dataset: str = column(pa.string(), "dataset name; a safe file name")
+    subject: str = column(pa.string(), "subject id; a safe file name")
     frame: int = column(pa.int32(), "frame number", to_arrow=int)
-    camera: str = column(pa.string(), "camera name; no `/` inside")
+    camera: str = column(pa.string(), "camera name; a safe file name")
     pattern: str = column(
-        pa.string(), "lighting: `full`, `olat-017`, or an environment-map name; no `/` inside"
+        pa.string(), "lighting: `full`, `olat-017`, or an environment-map name; a safe file name"
     )
     split: str = column(pa.string(), "`train`, `val`, `test`, ...")
     width: int = column(pa.int32(), "stored image width in pixels", to_arrow=int)
@@ -324,7 +378,9 @@ def camera_problems(K: np.ndarray, w2c: np.ndarray, width: int, height: int) -> 
 def validate_image_row(row: ImageRow) -> None:
     """Raise ``SchemaError`` naming the key and the field when ``row`` breaks the format."""
     where = f"image row {row.key!r}"
-    expected = make_image_key(row.dataset, row.subject, row.frame, row.camera, row.pattern)
+    expected = make_image_key(
+        row.dataset, row.subject, row.frame, row.camera, row.pattern, where=f"{where} (from {row.source})"
+    )
     if row.key != expected:
         raise SchemaError(f"{where}: key must be {expected!r}")
     if row.image_encoding not in IMAGE_ENCODINGS:
@@ -491,8 +547,7 @@ class DatasetInfo:
     def __post_init__(self) -> None:
         if self.kind not in DATASET_KINDS:
             raise SchemaError(f"dataset {self.name!r}: kind {self.kind!r} is not one of {DATASET_KINDS}")
-        if not self.name or "/" in self.name:
-            raise SchemaError(f"dataset name {self.name!r} must be non-empty and must not contain '/'")
+        check_name(self.name, "dataset", f"dataset {self.name!r}")
 
 
 @dataclass
@@ -554,7 +609,7 @@ class Manifest:
                     f"{where}: format_version {version} is not supported (expected {FORMAT_VERSION})"
                 )
             info = DatasetInfo(
-                name=values["dataset"],
+                name=check_name(values["dataset"], "dataset", where),
                 kind=values["kind"],
                 template_mesh_id=values["template_mesh_id"],
                 lighting=values["lighting"],

@@ -82,6 +82,7 @@ from relightanyone.format.schema import (
     SchemaError,
 )
 from relightanyone.hashing import sha256_file
+from relightanyone.progress import progress_bar
 
 DEFAULT_MAX_SHARD_BYTES = 256 << 20
 PARTS_DIR = "_parts"
@@ -312,8 +313,6 @@ class ShardWriter:
 
     def commit(self, progress: bool = False) -> Manifest:
         """Merge all finished parts in key order into shards, write the tables and the manifest (last)."""
-        from tqdm import tqdm
-
         if not self.parts_dir.is_dir():
             raise RuntimeError(
                 f"{self.dataset_dir}: nothing to commit; call ShardWriter.begin() and write parts first"
@@ -334,7 +333,7 @@ class ShardWriter:
         located.sort()
         sources = [pa.memory_map(str(part / _PART_IMAGES)) for part in parts]
 
-        shards, index_rows = self._write_shards(located, sources, progress and tqdm)
+        shards, index_rows = self._write_shards(located, sources, progress)
         index_entry = self._write_index(index_rows)
         meshes_entry = self._write_meshes(parts)
         lights_entry = self._publish_lights()
@@ -366,11 +365,13 @@ class ShardWriter:
         path = self.dataset_dir / name
         return FileEntry(file=name, rows=rows, sha256=sha256_file(path), bytes=path.stat().st_size)
 
-    def _write_shards(self, located, sources, tqdm) -> tuple[list[FileEntry], list[dict]]:
+    def _write_shards(self, located, sources, progress: bool) -> tuple[list[FileEntry], list[dict]]:
         shards: list[FileEntry] = []
         index_rows: list[dict] = []
         writer: StreamFileWriter | None = None
-        bar = tqdm(total=len(located), desc=f"commit {self.info.name}", unit="row") if tqdm else None
+        bar = progress_bar(
+            total=len(located), desc=f"commit {self.info.name}", unit="row", disable=not progress
+        )
 
         def finish() -> None:
             writer.finish()
@@ -394,15 +395,13 @@ class ShardWriter:
                     "batch_offset": batch_offset,
                 }
             )
-            if bar:
-                bar.update()
+            bar.update()
             if writer.bytes_written >= self.max_shard_bytes:
                 finish()
                 writer = None
         if writer is not None:
             finish()
-        if bar:
-            bar.close()
+        bar.close()
         for path in self.dataset_dir.glob("images-*.arrow"):
             match = _SHARD_NAME.match(path.name)
             if match is None or int(match.group(1)) >= len(shards):  # left by an earlier, larger run

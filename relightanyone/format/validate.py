@@ -4,7 +4,7 @@
 ``Problem``; an empty list means the data is sound. Checks: manifest present and of format version 1;
 every listed file present, of the listed size (truncation) and sha256 (any changed byte); no shard listed
 twice; no unlisted shard or leftover temporary file; shard schema; keys unique across shards and equal to
-the index; sane ``K`` and ``w2c``; images and masks decodable at the declared size; meshes, lights and
+the index; names safe as file names; sane ``K`` and ``w2c``; images and masks decodable at the declared size; meshes, lights and
 quarantine readable, and the quarantine holding as many entries as the manifest's ``quarantined``.
 """
 
@@ -32,9 +32,11 @@ from relightanyone.format.schema import (
     QuarantineEntry,
     SchemaError,
     camera_problems,
+    name_problem,
 )
 from relightanyone.format.shards import PARTS_DIR, dataset_dirs
 from relightanyone.hashing import sha256_file
+from relightanyone.progress import progress_bar
 
 
 @dataclass(frozen=True)
@@ -81,11 +83,20 @@ def _open_stream(
     return reader
 
 
+def _name_problems(values: dict) -> list[str]:
+    """The row's names that are not one safe file name: each becomes a path component on export."""
+    problems = []
+    for what in ("dataset", "subject", "camera", "pattern"):
+        problem = name_problem(values[what])
+        if problem is not None:
+            problems.append(f"{what} name {values[what]!r} {problem}")
+    return problems
+
+
 def _check_image_row(path: Path, row_number: int, values: dict, decode: bool) -> list[Problem]:
-    problems = [
-        Problem(str(path), row_number, f"{values['key']}: {p}")
-        for p in camera_problems(values["K"], values["w2c"], values["width"], values["height"])
-    ]
+    found = _name_problems(values)
+    found += camera_problems(values["K"], values["w2c"], values["width"], values["height"])
+    problems = [Problem(str(path), row_number, f"{values['key']}: {p}") for p in found]
     if not decode:
         return problems
     size = (values["height"], values["width"])
@@ -123,8 +134,6 @@ def _check_table(path: Path, schema: pa.Schema, problems: list[Problem]) -> pa.T
 
 def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = False) -> list[Problem]:
     """All problems of one dataset folder."""
-    from tqdm import tqdm
-
     dataset_dir = Path(dataset_dir)
     try:
         manifest = load_manifest(dataset_dir)
@@ -157,7 +166,7 @@ def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = Fa
 
     seen: dict[str, str] = {}
     total = sum(entry.rows for entry in manifest.shards)
-    bar = tqdm(total=total, desc=f"validate {manifest.info.name}", unit="row", disable=not progress)
+    bar = progress_bar(total=total, desc=f"validate {manifest.info.name}", unit="row", disable=not progress)
     for entry in dict.fromkeys(e.file for e in manifest.shards):
         path = dataset_dir / entry
         if entry not in intact:
