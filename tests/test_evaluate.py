@@ -440,3 +440,49 @@ def test_the_baseline_variant_is_chosen_on_validation_subjects_only(evaluated, t
     assert choice["chosen"] == max(scores, key=scores.get)
     assert str(evaluation.inputs.single_stage) == choice["chosen"]
     assert "masked loss" in choice["candidates"][str(masked)]["label"]
+
+
+def test_evaluate_command_takes_the_ablation_arms(evaluated, tmp_path):
+    """The command line of the demo's evaluate stage: arms by name, the main runs' fits only in Table 3b;
+    an arm whose stage 1 contradicts its name is refused in one line."""
+    from click.testing import CliRunner
+
+    from relightanyone.cli import cli
+
+    paths, root = evaluated["paths"], evaluated["paths"]["root"]
+    arm = {
+        name: [str(root / f"{name}-stage1"), str(root / f"{name}-stage2")]
+        for name in ("no-zl", "colour-matrix")
+    }
+    base = [
+        "evaluate",
+        "--world",
+        str(evaluated["world"]),
+        "--data",
+        f"d1={paths['data']}",
+        "--data",
+        f"d2={paths['flat']}",
+        "--stage1",
+        str(paths["stage1"]),
+        "--stage2",
+        str(paths["stage2"]),
+        "--fit-iterations",
+        "1",
+        "1",
+        "--max-views",
+        "2",
+        "--lights-subset",
+        "2",
+        "--quiet",
+    ]
+    wrong = CliRunner().invoke(
+        cli, [*base, "--ablation", "with-zl", *arm["no-zl"], "--out", str(tmp_path / "w")]
+    )
+    assert wrong.exit_code == 1 and "trained without" in wrong.output and "Traceback" not in wrong.output
+    args = [*base, "--ablation", "no-zl", *arm["no-zl"], "--ablation", "colour-matrix", *arm["colour-matrix"]]
+    result = CliRunner().invoke(cli, [*args, "--no-ablation-fits", "--out", str(tmp_path / "e")])
+    assert result.exit_code == 0, result.output
+    saved = json.loads((tmp_path / "e" / "evaluation.json").read_text())
+    assert set(saved["table3"]["mean"]) == {"with_lighting_code", "without_lighting_code", "colour_matrix"}
+    assert set(saved["table3_fitted"]["mean"]) == {"two_stage"}
+    assert saved["settings"]["unknown_lighting"] and saved["settings"]["monocular_single_image"]
