@@ -296,6 +296,19 @@ def write_report(out: Path, results: dict, tables: dict, input_images: dict[str,
         "- metrics: linear RGB clipped to [0, 1], inside the subject's mask; PSNR with peak 1, RMSE, SSIM "
         "(kornia, 11×11 Gaussian window, averaged over the mask); each metric is computed per image and averaged, "
         "so mean PSNR is not the PSNR of the mean RMSE.",
+        "- fit inputs of Tables 1-2: "
+        + (
+            "the world's renders under a lighting unknown to the fit (per subject: `input` in evaluation.json); "
+            "the lighting prior is the OLAT dataset's full-on rig"
+            if settings.get("unknown_lighting")
+            else "the dataset's full-on rows (lit by the calibrated rig the lighting prior starts from)"
+        ),
+        "- single image (Table 2): "
+        + (
+            "a monocular-quality mesh, a mask from the image alone and a generic focal length"
+            if settings.get("monocular_single_image")
+            else "the dataset's tracked mesh, mask and calibration"
+        ),
         f"- {results.get('lpips')}",
         f"- light units: {results.get('units', {}).get('note', 'not checked (no OLAT rows with answers)')}"
         + (
