@@ -454,18 +454,24 @@ def run_tasks(
     progress: bool,
 ) -> list:
     """``run_subject_task(writer, settings, task)`` for every task on ``executor``; the results in task
-    order. The progress bar counts views of finished subjects; the longest subjects start first."""
+    order. Each subject's part is published here as its task returns (a worker never publishes). The
+    progress bar counts views of finished subjects; the longest subjects start first."""
     bar = progress_bar(
         total=sum(len(t.plan.views) for t in tasks),
         desc=f"ingest {settings.dataset}",
         unit="view",
         disable=not progress,
     )
+
+    def done(task: SubjectTask) -> None:
+        writer.publish(task.task)
+        bar.update(len(task.plan.views))
+
     try:
         return executor.map(
             partial(run_subject_task, writer, settings),
             tasks,
-            on_done=lambda task: bar.update(len(task.plan.views)),
+            on_done=done,
             cost=lambda task: len(task.plan.views),
         )
     finally:

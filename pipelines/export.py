@@ -31,6 +31,7 @@ from relightanyone.format.arrow_io import atomic_write_bytes
 from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
 from relightanyone.format.schema import INDEX_NAME, MANIFEST_NAME, SchemaError, check_name
 from relightanyone.format.shards import dataset_dirs
+from relightanyone.locking import output_lock
 from relightanyone.os_errors import naming_file
 from relightanyone.progress import progress_bar
 
@@ -136,7 +137,8 @@ def export_dataset(
     """Write the dataset at ``dataset_dir`` into ``out`` (layout in the module docstring).
 
     Returns a summary ``{"dataset", "images", "subjects", "lights"}``. Raises ExportError for a folder that
-    is not one complete dataset or for unknown ``subjects``.
+    is not one complete dataset or for unknown ``subjects``. ``out`` is locked while it is written
+    (:mod:`relightanyone.locking`): a second export into it stops with an error naming this one.
     """
     if precision not in ("float", "half"):
         raise ExportError(f"precision {precision!r}: expected 'float' or 'half'")
@@ -157,8 +159,14 @@ def export_dataset(
     ):
         for name in names:
             check_name(name, what, str(dataset.path / INDEX_NAME))
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    with output_lock(out):
+        return _write_export(dataset, keys, Path(out), precision, progress)
+
+
+def _write_export(
+    dataset: NormalizedDataset, keys: list[str], out: Path, precision: str, progress: bool
+) -> dict:
+    """The files of an export of ``keys`` into ``out`` (which the caller has locked)."""
     (out / "dataset.json").unlink(missing_ok=True)  # incomplete until rewritten at the end
     cameras = []
     for key in progress_bar(keys, desc=f"export {dataset.name}", unit="image", disable=not progress):

@@ -12,10 +12,24 @@ expansion (one task per subject) both run on it.
   caller). The pool is kept for the life of the calling process, so later maps reuse warm workers;
   :meth:`Executor.warm` starts it in a background thread while the caller is still planning. A pool that
   lost a worker is replaced; a forked child starts its own. Every pool is started by
-  :func:`_start_pool`, the one place that sets what a worker does when it starts.
+  :func:`_start_pool`, the one place that sets what a worker does when it starts: it dies with the
+  process that started the pool (see below).
 * **Ray**: each item is a Ray task holding :class:`TaskResources` (CPUs, GPUs). With a cluster address
   (``address``, else ``RAY_ADDRESS``) the existing cluster is joined as it is; without one a local Ray
   of ``workers`` CPUs is started. A Ray already initialised in this process is used as it is.
+
+No process of a pool outlives its caller, even one killed with SIGKILL, which runs no clean-up. Each pool
+holds a *lifeline*, a pipe whose only write end stays in the caller (the forkserver and the resource
+tracker are started with only the descriptors they need, so they hold no copy). Each worker starts by
+asking the kernel to SIGKILL it when its parent, the forkserver, dies (:func:`die_with_parent`) and by
+starting a thread that waits on the lifeline's read end: the caller never writes to it, so the read
+returns only at end of file, when the caller is gone, and the thread then SIGKILLs the worker, whatever
+task it is running. The forkserver and the resource tracker exit by themselves once every process that
+holds their pipes, the workers included, has ended. A task never makes its own output count either:
+a ``ShardWriter`` part written in a worker is published by the caller when the task's result arrives
+(:meth:`relightanyone.format.shards.ShardWriter.publish`), so a worker that had not yet died could not
+publish anything after its caller was killed. Ray's processes are Ray's: a local Ray stops with its
+driver, a cluster keeps running.
 
 Tasks limit their own threads (:func:`cpu_share` is a worker's share of this machine's CPUs), so
 ``workers`` tasks side by side do not oversubscribe it.
@@ -24,17 +38,22 @@ Tasks limit their own threads (:func:`cpu_share` is a worker's share of this mac
 from __future__ import annotations
 
 import atexit
+import ctypes
 import multiprocessing
 import os
+import signal
+import sys
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
 from typing import Any
 
 from relightanyone.errors import DependencyError
 
 EXECUTORS = ("local", "ray")
+PR_SET_PDEATHSIG = 1  # prctl(2) option: the signal this process gets when its parent dies
 
 
 @dataclass(frozen=True)
@@ -153,42 +172,90 @@ def ray_init_arguments(address: str | None, workers: int, environ: Mapping[str, 
     return {"num_cpus": workers, "include_dashboard": False, "log_to_driver": False}
 
 
-# workers -> (owning pid, process pool) kept for this process's later maps; a forked child sees its
-# parent's entries but not the threads that drive those pools, so it starts its own.
-_POOLS: dict[int, tuple[int, ProcessPoolExecutor]] = {}
+def die_with_parent() -> None:
+    """Ask the kernel to SIGKILL this process when its parent dies (Linux ``PR_SET_PDEATHSIG``; elsewhere
+    nothing). Safe between fork and exec. The "parent" is the thread that forked this process, so a process
+    forked from a short-lived thread must not call it."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (OSError, AttributeError):  # no libc prctl: the lifeline still ends the process
+        pass
+
+
+def _die_at_end_of_file(lifeline: Connection) -> None:
+    """Block on ``lifeline`` until its write end closes (nothing is ever sent), then SIGKILL this process."""
+    try:
+        lifeline.recv_bytes()
+    except (EOFError, OSError):
+        pass
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _start_worker(lifeline: Connection) -> None:
+    """What every pool worker runs first: die with the forkserver, and with the pool's caller when the
+    ``lifeline`` reaches end of file (at once if the caller is already gone)."""
+    die_with_parent()
+    threading.Thread(
+        target=_die_at_end_of_file, args=(lifeline,), name="executor-lifeline", daemon=True
+    ).start()
+
+
+@dataclass
+class _Pool:
+    """A kept pool: the process that started it, the pool, and the write end of its workers' lifeline."""
+
+    owner: int
+    pool: ProcessPoolExecutor
+    lifeline: Connection
+
+    def close(self, wait: bool) -> None:
+        self.pool.shutdown(wait=wait, cancel_futures=True)
+        self.lifeline.close()  # a worker still running (a broken pool's) dies now
+
+
+# workers -> the pool kept for this process's later maps; a forked child sees its parent's entries but not
+# the threads that drive those pools, so it starts its own.
+_POOLS: dict[int, _Pool] = {}
 _POOLS_LOCK = threading.Lock()  # the warm-up thread and the caller may both ask for the pool first
 
 
-def _start_pool(workers: int, preload: Sequence[str]) -> ProcessPoolExecutor:
-    """A new pool of ``workers`` processes forked from the forkserver."""
+def _start_pool(workers: int, preload: Sequence[str]) -> _Pool:
+    """A new pool of ``workers`` processes forked from the forkserver, each tied to this process."""
     context = multiprocessing.get_context("forkserver")
     # Workers fork from a clean server process that imported the heavy modules once, instead of each
     # spawned worker importing them again; nothing is inherited from this (possibly threaded) process.
     context.set_forkserver_preload(list(preload))
-    return ProcessPoolExecutor(max_workers=workers, mp_context=context)
+    # The read end travels to each worker with its start arguments; the write end never leaves this process.
+    lifeline_read, lifeline_write = context.Pipe(duplex=False)
+    pool = ProcessPoolExecutor(
+        max_workers=workers, mp_context=context, initializer=_start_worker, initargs=(lifeline_read,)
+    )
+    return _Pool(os.getpid(), pool, lifeline_write)
 
 
 def _local_pool(workers: int, preload: Sequence[str] = ()) -> ProcessPoolExecutor:
     """The kept pool of ``workers`` processes, started on first use; a pool whose worker died is replaced."""
     with _POOLS_LOCK:
-        owner, pool = _POOLS.get(workers, (None, None))
-        if owner == os.getpid():
-            if not getattr(pool, "_broken", False):
-                return pool
-            pool.shutdown(wait=False, cancel_futures=True)
-        pool = _start_pool(workers, preload)
-        if not any(pid == os.getpid() for pid, _ in _POOLS.values()):
+        kept = _POOLS.get(workers)
+        if kept is not None and kept.owner == os.getpid():
+            if not getattr(kept.pool, "_broken", False):
+                return kept.pool
+            kept.close(wait=False)
+        if not any(k.owner == os.getpid() for k in _POOLS.values()):
             atexit.register(shutdown_pools)
-        _POOLS[workers] = (os.getpid(), pool)
-        return pool
+        _POOLS[workers] = _start_pool(workers, preload)
+        return _POOLS[workers].pool
 
 
 def shutdown_pools() -> None:
     """Stop this process's kept pools (they also stop when it exits)."""
-    for workers, (owner, pool) in list(_POOLS.items()):
+    for workers, kept in list(_POOLS.items()):
         del _POOLS[workers]
-        if owner == os.getpid():
-            pool.shutdown(wait=True, cancel_futures=True)
+        if kept.owner == os.getpid():
+            kept.close(wait=True)
 
 
 def _ready() -> bool:

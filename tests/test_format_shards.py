@@ -177,6 +177,9 @@ def test_parts_from_worker_processes_give_the_bytes_of_a_sequential_run(tmp_path
             context = multiprocessing.get_context("fork")
             with concurrent.futures.ProcessPoolExecutor(2, mp_context=context) as pool:
                 assert sorted(pool.map(_write_task, [writer] * 4, reversed(subjects))) == list(subjects)
+            assert not any(writer.has_part(s) for s in subjects)  # only this process publishes
+            for subject in subjects:
+                writer.publish(subject)
         else:
             for subject in subjects:
                 _write_task(writer, subject)

@@ -53,9 +53,9 @@ def test_warmed_pool_is_the_one_the_tasks_run_on():
         thread = Executor("local", 2).warm()
         thread.join(timeout=120)
         assert not thread.is_alive()
-        warmed = parallel._POOLS[2][1]
+        warmed = parallel._POOLS[2].pool
         pids = set(Executor("local", 2).map(_pid, list(range(6))))
-        assert parallel._POOLS[2][1] is warmed  # no second pool was started
+        assert parallel._POOLS[2].pool is warmed  # no second pool was started
         assert pids and os.getpid() not in pids
         assert {p.pid for p in warmed._processes.values()} >= pids
     finally:

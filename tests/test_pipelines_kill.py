@@ -1,5 +1,5 @@
 """A `relightanyone run` killed with SIGKILL in the middle of a stage is finished by the next run, with the
-same bytes as an uninterrupted run and nothing duplicated."""
+same bytes as an uninterrupted run and nothing duplicated; the stage and its pool workers die with it."""
 
 from __future__ import annotations
 
@@ -12,8 +12,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-from helpers.kill_handshake import HANG_GUARD_SECONDS
+from helpers.custom_capture import make_capture
+from helpers.held_workers import BUSY, HELD_INGEST_SCRIPT, RELEASE_ENV, release
+from helpers.kill_handshake import HANG_GUARD_SECONDS, descendants, kill_all, kill_at, wait_until_dead
 
+from relightanyone.format.reader import NormalizedDataset
 from relightanyone.pipelines.dag.runner import STAGE_RECORD_NAME, execute, load_pipeline, plan
 
 # A resumable, deterministic stage: writes parts one by one (each atomically), skipping finished ones, and
@@ -126,3 +129,47 @@ def test_sigkill_mid_stage_then_rerun_matches_an_uninterrupted_run(tmp_path):
     journal = (killed / "journal.txt").read_text().split()
     assert sorted(journal, key=int) == [str(i) for i in range(12)]  # every part written exactly once
     assert [r.status for r in execute(pipeline, echo=None, announce=lambda _: None)] == ["skipped", "skipped"]
+
+
+INGEST_PIPELINE = """
+vars:
+  out: unset
+stages:
+  ingest:
+    command: ["${{python}}", "{script}", "{capture}", "${{output}}"]
+    output: ${{out}}/normalized
+"""
+
+
+def test_sigkill_of_the_runner_ends_the_stage_and_its_pool_workers(tmp_path):
+    capture = make_capture(tmp_path / "capture", subjects=("s1", "s2", "s3"))
+    script = tmp_path / "held_ingest.py"
+    script.write_text(HELD_INGEST_SCRIPT)
+    pipeline_file = tmp_path / "pipe.yaml"
+    pipeline_file.write_text(INGEST_PIPELINE.format(script=script, capture=capture))
+    out, fifo = tmp_path / "out", tmp_path / "release"
+    os.mkfifo(fifo)
+    # Not quiet: the runner echoes its stage's output, where the held workers announce themselves.
+    runner = subprocess.Popen(
+        [sys.executable, "-m", "relightanyone", "run", str(pipeline_file), "--var", f"out={out}"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1", RELEASE_ENV: str(fifo)},
+    )
+    run: dict[int, str] = {}
+    try:
+        kill_at(runner, BUSY, count=2, before_kill=lambda: run.update(descendants(runner.pid)))
+        assert len(run) >= 5, run  # the stage, its forkserver, resource tracker and two workers
+        release(fifo)  # a worker that survived would now finish its part
+        assert wait_until_dead(run) == [], "processes of the killed run are still alive"
+    finally:
+        kill_all(run)
+    parts = out / "normalized" / "custom" / "_parts"
+    assert [p.name for p in parts.iterdir() if p.is_dir() and not p.name.endswith(".tmp")] == []
+
+    results = execute(load_pipeline(pipeline_file, {"out": str(out)}), echo=None, announce=lambda _: None)
+    assert [r.status for r in results] == ["ran"]
+    dataset = NormalizedDataset(out / "normalized" / "custom")
+    assert dataset.manifest.counts["images"] == 24 and dataset.manifest.counts["subjects"] == 3

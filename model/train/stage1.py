@@ -15,6 +15,7 @@ all processes keep identical weights. Only rank 0 writes files.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -28,6 +29,7 @@ import torch.distributed as dist
 from relightanyone.align.colour import linear_to_display
 from relightanyone.errors import InputError
 from relightanyone.format.schema import TEMPLATE_NAME
+from relightanyone.locking import output_lock
 from relightanyone.model.networks.gaussians import load_template_binding
 from relightanyone.model.networks.presets import Stage1Preset
 from relightanyone.model.networks.render import comparison_strip, render_gaussians
@@ -171,8 +173,17 @@ def _write_json(path: Path, payload: dict) -> None:
 
 
 def train_stage1(config: Stage1Config) -> dict:
-    """Train (or resume) a stage-1 run; returns the metrics written to ``RUN/metrics.json``."""
+    """Train (or resume) a stage-1 run; returns the metrics written to ``RUN/metrics.json``.
+
+    The process that writes the run folder (rank 0) holds its lock (:mod:`relightanyone.locking`) for the
+    whole run, so a second run into the same folder stops at once.
+    """
     group = setup_process_group()
+    with output_lock(config.out) if group.is_main else contextlib.nullcontext():
+        return _train_stage1(config, group)
+
+
+def _train_stage1(config: Stage1Config, group: ProcessGroup) -> dict:
     preset = config.preset
     out = Path(config.out)
     data = Stage1Data(config.data, preset.held_out_cameras, apply_learned_colour=not config.warmup)

@@ -37,6 +37,7 @@ from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import LIGHTS_NAME, TEMPLATE_NAME, make_mesh_key
 from relightanyone.format.torch_dataset import LEARNED, NormalizedTorchDataset, collate_rows, image_hwc
+from relightanyone.locking import output_lock
 from relightanyone.model.networks.gaussians import load_template_binding
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
 from relightanyone.model.networks.reflectance import (
@@ -552,8 +553,10 @@ class Stage2Trainer:
 
 
 def train_stage2(config: Stage2Config) -> dict:
-    """Train a stage-2 (or, with ``single_stage``, a single-stage baseline) run; returns its metrics."""
-    return Stage2Trainer(config).train()
+    """Train a stage-2 (or, with ``single_stage``, a single-stage baseline) run; returns its metrics. The
+    run folder is locked for the whole run (:mod:`relightanyone.locking`)."""
+    with output_lock(config.out):
+        return Stage2Trainer(config).train()
 
 
 def _write_json(path: Path, payload: dict) -> None:

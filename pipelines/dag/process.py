@@ -3,28 +3,21 @@
 The child's stdout and stderr share one pipe, so progress bars and messages keep their order; every
 chunk goes to the terminal (unless quiet) and to the log. On Linux the child is asked to die with the
 runner (``PR_SET_PDEATHSIG``): a runner killed with SIGKILL leaves no orphan writing into the output
-directory while the next run starts the stage again.
+directory while the next run starts the stage again; the stage's own pool workers die with the stage
+(:mod:`relightanyone.parallel`).
 """
 
 from __future__ import annotations
 
-import ctypes
 import os
 import subprocess
 import sys
 from pathlib import Path
 from typing import BinaryIO
 
-PR_SET_PDEATHSIG = 1
+from relightanyone.parallel import die_with_parent
+
 READ_CHUNK_BYTES = 1 << 16
-
-
-def _die_with_parent() -> None:  # runs in the child between fork and exec
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(PR_SET_PDEATHSIG, 9)  # SIGKILL when the parent goes away
-    except (OSError, AttributeError):
-        pass
 
 
 def stage_argv(kind: str, args: tuple[str, ...]) -> list[str]:
@@ -50,7 +43,8 @@ def run_with_log(
             stdin=subprocess.DEVNULL,
             env=child_env,
             cwd=cwd,
-            preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+            # Between fork and exec; the runner waits for the child in the thread that started it.
+            preexec_fn=die_with_parent if sys.platform.startswith("linux") else None,
         )
     except FileNotFoundError:
         raise FileNotFoundError(

@@ -36,6 +36,12 @@ def attempt_path(output: Path) -> Path:
     return Path(output).parent / f".{Path(output).name}_stage.attempt"
 
 
+def stage_lock_name(output: Path) -> str:
+    """The name of the lock a runner holds while a stage writes ``output``: a file beside it (like the live
+    log), since the stage's own command may lock the folder itself (:mod:`relightanyone.locking`)."""
+    return f".{Path(output).name}_stage.lock"
+
+
 def read_attempt(output: Path) -> str | None:
     """The fingerprint of the unfinished run that last wrote into ``output``, or None."""
     try:

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from relightanyone.errors import RelightAnyoneError
+from relightanyone.locking import output_lock
 from relightanyone.pipelines.dag.fingerprint import (
     Fingerprint,
     HashCache,
@@ -48,6 +49,7 @@ from relightanyone.pipelines.dag.record import (
     read_record,
     stage_config,
     stage_fingerprint,
+    stage_lock_name,
     write_attempt,
     write_record,
 )
@@ -369,7 +371,17 @@ def run_stage(
 ) -> dict:
     """Run one stage's command and, when it succeeds, write and return its ``_stage.json`` record.
 
-    Without ``echo`` the path of the live log is passed to ``announce`` (for ``tail -f``)."""
+    The stage's output is locked while it runs (:func:`stage_lock_name`): another runner reaching the same
+    stage stops with an error naming this one instead of clearing the output under it. Without ``echo``
+    the path of the live log is passed to ``announce`` (for ``tail -f``)."""
+    output = pipeline.stages[decision.stage].output
+    with output_lock(output.parent, stage_lock_name(output)):
+        return _run_stage(pipeline, decision, cache, echo, announce)
+
+
+def _run_stage(
+    pipeline: Pipeline, decision: Decision, cache: HashCache, echo: BinaryIO | None, announce
+) -> dict:
     stage = pipeline.stages[decision.stage]
     inputs = decision.inputs or {str(p): fingerprint_path(p, cache) for p in stage.inputs}
     missing = [path for path, fingerprint in inputs.items() if fingerprint is None]

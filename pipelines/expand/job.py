@@ -346,18 +346,28 @@ def run_expand_tasks(
     ``executor`` "local" runs in this process (one worker or one task; the progress bar counts relit
     images per camera) or in the kept process pool of ``workers`` processes; "ray" runs Ray tasks that
     each hold a CPU, and a GPU when rendering on CUDA. Elsewhere than in this process the bar counts the
-    images of finished subjects. Subjects that need a fit take longest, so they start first.
+    images of finished subjects. Subjects that need a fit take longest, so they start first. Each
+    subject's part is published here as its task returns (a worker never publishes).
     """
     runner = Executor(executor, workers, preload=WORKER_PRELOAD)
     total = sum(len(t.source_keys) for t in tasks) * images_per_view
     bar = progress_bar(total=total, desc=f"expand {settings.output.name}", unit="image", disable=not progress)
+
+    def done(task: ExpandTask) -> None:
+        writer.publish(task.name)
+        bar.update(len(task.source_keys) * images_per_view)
+
     try:
         if runner.in_process(len(tasks)):
-            return runner.map(partial(run_expand_task, writer, settings, on_images=bar.update), tasks)
+            return runner.map(
+                partial(run_expand_task, writer, settings, on_images=bar.update),
+                tasks,
+                on_done=lambda task: writer.publish(task.name),
+            )
         return runner.map(
             partial(run_expand_task, writer, settings),
             tasks,
-            on_done=lambda task: bar.update(len(task.source_keys) * images_per_view),
+            on_done=done,
             cost=lambda task: (not task.known, len(task.source_keys)),
             resources=TaskResources(cpus=1, gpus=1 if settings.device.startswith("cuda") else 0),
         )

@@ -13,14 +13,19 @@ processes, then committed once::
             part.add(image_row)                 # ImageRow (schema.build_image_row)
             part.add_mesh(mesh_row)             # MeshRow
             part.quarantine(entry)              # QuarantineEntry
+        writer.publish(task)                    # coordinator, when a worker's task has returned
     manifest = writer.commit()                  # coordinator: shards, index, tables, manifest (last)
 
 Files under ``<dataset>/``:
 
 ``_parts/<task>/``
     one finished task: ``images.arrow`` (+ ``offsets.json``), ``meshes.arrow``, ``quarantine.jsonl``.
-    A task is written under ``_parts/<task>.tmp/`` and renamed when its ``with`` block ends without error,
-    so a killed worker leaves only a ``.tmp`` folder, which ``begin`` discards.
+    A task is written under ``_parts/<task>.tmp/`` and renamed (*published*) once its ``with`` block ends
+    without error, so a killed worker leaves only a ``.tmp`` folder, which ``begin`` discards. Only the
+    process that made the writer, the coordinator, publishes: in it the ``with`` block publishes the part;
+    a part written elsewhere (a pool or Ray worker, which gets the writer pickled) stays in its ``.tmp``
+    folder until the coordinator calls ``writer.publish(task)`` on the task's result. A worker that
+    outlives a killed coordinator can therefore never make a part look finished.
 ``images-00000.arrow`` ...
     written by ``commit``: all rows of all parts sorted by key, one row per record batch, a new shard when
     the current one passes ``max_shard_bytes``. Same rows -> same bytes, whatever order or process the
@@ -31,6 +36,10 @@ Files under ``<dataset>/``:
 ``manifest.json``
     written last, atomically, with the sha256 and size of every file above. A dataset without it is
     incomplete and readers refuse it. ``commit`` removes ``_parts`` only after the manifest is durable.
+
+``.lock``
+    held by the coordinator from ``begin`` to ``commit`` (:mod:`relightanyone.locking`): one writer per
+    dataset folder; removed by ``commit``, left unlocked by a killed run.
 
 Resuming: run the same code again. ``begin`` removes the manifest and every ``*.tmp``, keeps the finished
 parts when the config fingerprint is unchanged (drops them otherwise), and ``commit`` rewrites every shard
@@ -82,6 +91,7 @@ from relightanyone.format.schema import (
     SchemaError,
 )
 from relightanyone.hashing import sha256_file
+from relightanyone.locking import acquire_output_lock, release_output_lock
 from relightanyone.progress import progress_bar
 
 DEFAULT_MAX_SHARD_BYTES = 256 << 20
@@ -182,11 +192,20 @@ def _single_row_batch(schema: pa.Schema, values: dict) -> pa.RecordBatch:
     )
 
 
-class PartWriter:
-    """Rows of one task, written to ``_parts/<task>.tmp/`` and published atomically on ``close``."""
+def _publish_part(tmp_dir: Path, final_dir: Path) -> None:
+    """Rename a finished task's folder to its final name, durably."""
+    shutil.rmtree(final_dir, ignore_errors=True)
+    os.replace(tmp_dir, final_dir)
+    fsync_dir(final_dir.parent)
 
-    def __init__(self, parts_dir: Path, task: str, compression_level: int):
+
+class PartWriter:
+    """Rows of one task, written to ``_parts/<task>.tmp/`` and, when ``publish``, published atomically on
+    ``close``."""
+
+    def __init__(self, parts_dir: Path, task: str, compression_level: int, publish: bool = True):
         self.task = _check_task_name(task)
+        self.publish = publish  # False in a worker: the coordinator publishes the finished folder
         self.final_dir = parts_dir / task
         self.tmp_dir = parts_dir / f"{task}.tmp"
         shutil.rmtree(self.tmp_dir, ignore_errors=True)
@@ -219,7 +238,7 @@ class PartWriter:
         self._quarantine.setdefault(entry.item, deterministic_entry(entry))
 
     def close(self) -> None:
-        """Finish the task's files and publish the task folder."""
+        """Finish the task's files and, in the coordinator, publish the task folder."""
         self._images.finish()
         atomic_write_bytes(
             self.tmp_dir / _PART_OFFSETS,
@@ -229,9 +248,8 @@ class PartWriter:
         write_table_file(self.tmp_dir / MESHES_NAME, pa.Table.from_pylist(meshes, schema=MESH_SCHEMA))
         lines = "".join(self._quarantine[k].to_json_line() + "\n" for k in sorted(self._quarantine))
         atomic_write_bytes(self.tmp_dir / QUARANTINE_NAME, lines.encode("utf-8"))
-        shutil.rmtree(self.final_dir, ignore_errors=True)
-        os.replace(self.tmp_dir, self.final_dir)
-        fsync_dir(self.final_dir.parent)
+        if self.publish:
+            _publish_part(self.tmp_dir, self.final_dir)
 
     def abort(self) -> None:
         self._images.abort()
@@ -265,15 +283,18 @@ class ShardWriter:
             raise ValueError(
                 f"dataset folder {self.dataset_dir} must be named after the dataset {info.name!r}"
             )
+        # The coordinator: the one process that publishes parts (a pickled copy keeps this pid).
+        self.coordinator_pid = os.getpid()
 
     @property
     def parts_dir(self) -> Path:
         return self.dataset_dir / PARTS_DIR
 
     def begin(self) -> None:
-        """Start (or resume) writing: drop the manifest and temporary files; keep finished parts of the
-        same config."""
-        self.dataset_dir.mkdir(parents=True, exist_ok=True)
+        """Start (or resume) writing: lock the folder for this process until ``commit`` (another writer
+        gets :class:`~relightanyone.locking.OutputLockedError` and changes nothing), drop the manifest and
+        temporary files; keep finished parts of the same config."""
+        acquire_output_lock(self.dataset_dir)
         (self.dataset_dir / MANIFEST_NAME).unlink(missing_ok=True)
         fsync_dir(self.dataset_dir)
         stamp = self.parts_dir / _CONFIG_STAMP
@@ -297,7 +318,21 @@ class ShardWriter:
         """A writer for the rows of one task; use it as a context manager."""
         if not self.parts_dir.is_dir():
             raise RuntimeError(f"{self.dataset_dir}: call ShardWriter.begin() before writing parts")
-        return PartWriter(self.parts_dir, task, self.compression_level)
+        return PartWriter(
+            self.parts_dir, task, self.compression_level, publish=os.getpid() == self.coordinator_pid
+        )
+
+    def publish(self, task: str) -> None:
+        """In the coordinator, once ``task`` has returned: publish the part a worker finished for it (nothing
+        to do when the coordinator wrote the part itself)."""
+        if os.getpid() != self.coordinator_pid:
+            raise RuntimeError(f"{self.dataset_dir}: parts are published by the coordinator process only")
+        final_dir = self.parts_dir / _check_task_name(task)
+        tmp_dir = self.parts_dir / f"{task}.tmp"
+        if tmp_dir.is_dir():
+            _publish_part(tmp_dir, final_dir)
+        elif not final_dir.is_dir():
+            raise RuntimeError(f"{self.dataset_dir}: task {task!r} has no finished part to publish")
 
     def write_lights(self, lights: Sequence[LightRow]) -> None:
         """The rig's lights (OLAT datasets), sorted by index; published by ``commit``."""
@@ -317,7 +352,12 @@ class ShardWriter:
             raise RuntimeError(
                 f"{self.dataset_dir}: nothing to commit; call ShardWriter.begin() and write parts first"
             )
-        parts = sorted(p for p in self.parts_dir.iterdir() if p.is_dir() and not p.name.endswith(".tmp"))
+        unpublished = sorted(p.name for p in self.parts_dir.glob("*.tmp"))
+        if unpublished:  # a worker's part nobody published: its rows would be missing
+            raise RuntimeError(
+                f"{self.dataset_dir}: parts never published, call publish(task): {unpublished}"
+            )
+        parts = sorted(p for p in self.parts_dir.iterdir() if p.is_dir())
         located: list[tuple[str, int, int, list | None]] = []
         owner: dict[str, str] = {}
         for part_index, part in enumerate(parts):
@@ -359,6 +399,7 @@ class ShardWriter:
         )
         atomic_write_bytes(self.dataset_dir / MANIFEST_NAME, manifest.dumps().encode("utf-8"))
         shutil.rmtree(self.parts_dir)
+        release_output_lock(self.dataset_dir)
         return manifest
 
     def _entry(self, name: str, rows: int) -> FileEntry:
