@@ -81,6 +81,14 @@ from relightanyone.cli_options import (
 @out_option("Output folder.")
 @fit_iterations_option((100, 100), "Inversion and finetuning iterations of every fit.")
 @click.option(
+    "--split",
+    type=click.Choice(["test", "val"]),
+    default="test",
+    show_default=True,
+    help="Held-out split scored: test (the reported numbers) or val (model selection and tuning). "
+    "Subjects any run trained on are refused.",
+)
+@click.option(
     "--subjects",
     type=click.IntRange(min=0),
     default=1,
@@ -129,6 +137,7 @@ def evaluate_command(
     monocular_single_image: bool,
     out: Path,
     fit_iterations: tuple[int, int],
+    split: str,
     subjects: int,
     max_views: int,
     lights_subset: int,
@@ -172,12 +181,16 @@ def evaluate_command(
         ablation_fits=ablation_fits,
         unknown_lighting=unknown_lighting,
         monocular_single_image=monocular_single_image,
+        split=split,
         views_per_step=views_per_step,
         seed=seed,
         progress=not quiet,
     )
     results = run_evaluation(inputs, settings, out, json_copy)
-    click.echo(f"wrote {out / 'report.md'} and {out / 'evaluation.json'}")
+    click.echo(
+        f"wrote {out / 'report.md'} and {out / 'evaluation.json'} ({results['run_kind']}, "
+        f"protocol {results['protocol_sha256'][:12]})"
+    )
     for claim, value in results.get("goals", {}).items():
         click.echo(f"  {claim}: {'not evaluated' if value is None else ('yes' if value else 'NO')}")
 
