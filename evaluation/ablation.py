@@ -85,7 +85,7 @@ def arm_dataset(arm: AblationArm, dataset: str, fallback: Path) -> Path:
     return path if path is not None and path.is_dir() else Path(fallback)
 
 
-def load_arm(name: str, stage1: Path, stage2: Path) -> AblationArm:
+def load_arm(name: str, stage1: Path, stage2: Path, device: str = "cpu") -> AblationArm:
     """Load arm ``name`` (a key of :data:`ARM_ROWS`) from its stage-1 and stage-2 runs.
 
     Refuses an arm whose stage 1 disagrees with its name (``with-zl`` trained without lighting codes or
@@ -104,7 +104,7 @@ def load_arm(name: str, stage1: Path, stage2: Path) -> AblationArm:
         )
     return AblationArm(
         row=ARM_ROWS[name],
-        model=load_relightable_model(stage1, stage2),
+        model=load_relightable_model(stage1, stage2, device),
         subjects=list(checkpoint["subjects"]),
         budget=two_stage_budget(stage1, stage2),
         lighting_code=lighting_code,
@@ -114,10 +114,15 @@ def load_arm(name: str, stage1: Path, stage2: Path) -> AblationArm:
 
 
 def load_arms(
-    arms: dict[str, tuple[Path, Path]], main: RelightableModel, stage1: Path, stage2: Path
+    arms: dict[str, tuple[Path, Path]],
+    main: RelightableModel,
+    stage1: Path,
+    stage2: Path,
+    device: str = "cpu",
 ) -> dict[str, AblationArm]:
-    """Every given arm, keyed by its row; without a ``with-zl`` arm the main runs are that arm."""
-    loaded = {ARM_ROWS[name]: load_arm(name, *runs) for name, runs in arms.items()}
+    """Every given arm (loaded on ``device``), keyed by its row; without a ``with-zl`` arm the main runs are
+    that arm."""
+    loaded = {ARM_ROWS[name]: load_arm(name, *runs, device) for name, runs in arms.items()}
     if ARM_ROWS["with-zl"] not in loaded:
         loaded = {
             ARM_ROWS["with-zl"]: AblationArm(

@@ -92,6 +92,7 @@ class EvaluationSettings:
     views_per_step: int = 4
     seed: int = 0
     progress: bool = True
+    device: str = "cpu"  # torch device of the fits and renders; scores are computed on the CPU
 
 
 @dataclass
@@ -121,6 +122,7 @@ class Comparison:
     def add(
         self, label: str, prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, lpips
     ) -> None:
+        prediction = prediction.cpu()  # renders come from the fit's device; the truth is on the CPU
         for name, values in image_metrics(prediction, truth, mask, lpips).items():
             self.scores.setdefault(name, []).extend(float(v) for v in values)
         self.examples.append((label, prediction[0].numpy(), truth[0].numpy(), mask[0, 0].numpy()))
@@ -218,25 +220,28 @@ def render_weighted_rig(avatar, cameras, cases: list[LightCase]) -> torch.Tensor
     """
     lightings = []
     for case in cases:
-        weights = torch.as_tensor(case.weights, dtype=torch.float32)
-        lightings.append(PointLights(case.basis.positions, case.basis.intensities.float() * weights))
+        weights = torch.as_tensor(case.weights, dtype=torch.float32, device=case.basis.intensities.device)
+        weighted = PointLights(case.basis.positions, case.basis.intensities.float() * weights)
+        lightings.append(weighted.to(cameras.w2c.device))
     return render_lightings(avatar, cameras, lightings)
 
 
 def compare(avatar, cases: list[LightCase], lpips) -> Comparison:
-    """Render every case (grouped by camera set: one batched render per group) and score it."""
+    """Render every case (grouped by camera set: one batched render per group, on the avatar's device)
+    and score it."""
+    device = avatar.means.device
     comparison = Comparison()
     groups: dict[tuple[str, ...], list[LightCase]] = {}
     for case in cases:
         groups.setdefault(tuple(v.camera for v in case.views), []).append(case)
     predictions: dict[int, torch.Tensor] = {}
     for group in groups.values():
-        cameras = view_cameras(group[0].views)
+        cameras = view_cameras(group[0].views).to(device)
         olat = [c for c in group if c.light is not None]
         if olat:
             lights = PointLights(
                 torch.cat([c.light.positions for c in olat]), torch.cat([c.light.intensities for c in olat])
-            )
+            ).to(device)
             for case, image in zip(olat, render_point_lights(avatar, cameras, lights), strict=True):
                 predictions[id(case)] = image
         relit = [c for c in group if c.light is None]
@@ -270,8 +275,9 @@ class Evaluation:
                 f"no {settings.split} subjects in the evaluated datasets {sorted(inputs.datasets)}; "
                 f"the world's or the rows' splits give none (choose another --split)"
             )
-        self.model = load_relightable_model(inputs.stage1, inputs.stage2)
-        self.arms = load_arms(inputs.ablation, self.model, inputs.stage1, inputs.stage2)
+        self.device = torch.device(settings.device)
+        self.model = load_relightable_model(inputs.stage1, inputs.stage2, self.device)
+        self.arms = load_arms(inputs.ablation, self.model, inputs.stage1, inputs.stage2, self.device)
         available, reason = lpips_status()
         self.lpips = LpipsMetric() if available else None
         self.lpips_note = reason
@@ -288,7 +294,7 @@ class Evaluation:
             self.single, chosen, self.results["baseline_choice"] = self.choose_single_stage(candidates)
             self.inputs = dataclasses.replace(inputs, single_stage=chosen, single_stage_variants=())
         elif candidates:
-            self.single = load_single_stage_run(candidates[0])
+            self.single = load_single_stage_run(candidates[0], self.device)
         self.budgets = self._budgets()
 
     def choose_single_stage(self, candidates: list[Path]):
@@ -297,7 +303,7 @@ class Evaluation:
         path = self.inputs.datasets[self.olat_world]
         subjects = validation_subjects(path, self.inputs.answers, self.olat_world)
         require_validation(subjects, path, len(candidates))
-        runs = {str(c): load_single_stage_run(c) for c in candidates}
+        runs = {str(c): load_single_stage_run(c, self.device) for c in candidates}
         scores: dict[str, list[float]] = {str(c): [] for c in candidates}
         for subject in subjects:
             cameras, _ = subject_cameras(path, subject, self.settings.max_views)
@@ -361,6 +367,7 @@ class Evaluation:
         if views is None:
             views = load_fit_views(data or self.inputs.datasets[world_name], subject, cameras=cameras)
         self.inputs_images.setdefault(f"{world_name}/{subject}", views.images[0].permute(1, 2, 0).numpy())
+        views = views.to(self.device)
         torch.manual_seed(self.settings.seed)
         start = time.perf_counter()
         if single or single_run is not None:
@@ -571,7 +578,9 @@ class Evaluation:
                 )
                 tracked = dataset.meshes().get(make_mesh_key(subject, frame))
                 tracked = (
-                    None if tracked is None else torch.as_tensor(np.asarray(tracked), dtype=torch.float32)
+                    None
+                    if tracked is None
+                    else torch.as_tensor(np.asarray(tracked), dtype=torch.float32, device=self.device)
                 )
                 self.inputs_images.setdefault(f"{world_name}/{subject}", self._first_image(path, subject))
                 avatars = {

@@ -49,6 +49,7 @@ COMMAND_ORDER = (
     "fit",
     "relight",
     "export",
+    "plan",
     "expand",
     "evaluate",
     "report",
