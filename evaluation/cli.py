@@ -43,8 +43,41 @@ from relightanyone.cli_options import (
     "--single-stage",
     "single_stage",
     type=EXISTING_FOLDER,
-    default=None,
-    help="Single-stage baseline run (Table 1 compares it when given).",
+    multiple=True,
+    help="Single-stage baseline run (Table 1 compares it when given). Repeat for its loss variants: the "
+    "one with the best OLAT relighting of the OLAT dataset's validation subjects is the baseline.",
+)
+@click.option(
+    "--ablation",
+    "ablation",
+    multiple=True,
+    type=(click.Choice(["with-zl", "no-zl", "colour-matrix"]), EXISTING_FOLDER, EXISTING_FOLDER),
+    metavar="ARM STAGE1 STAGE2",
+    help="A lighting-code ablation arm and its stage-1 and stage-2 runs (repeat per arm): with-zl (the "
+    "method; default: --stage1/--stage2), no-zl (stage 1 trained --no-lighting-code), colour-matrix (no "
+    "lighting codes, datasets aligned by learned 3x3 matrices). Table 3 compares them.",
+)
+@click.option(
+    "--ablation-fits/--no-ablation-fits",
+    default=True,
+    show_default=True,
+    help="Table 3b fits the held-out flat-lit subjects with every arm (off: with the main runs only).",
+)
+@click.option(
+    "--unknown-lighting/--dataset-lighting",
+    "unknown_lighting",
+    default=True,
+    show_default=True,
+    help="Fit Table 1/2 subjects on the world's renders under a lighting unknown to the fit (off: on the "
+    "dataset's full-on rows, lit by the calibrated rig the fit's prior starts from).",
+)
+@click.option(
+    "--monocular-single-image/--calibrated-single-image",
+    "monocular_single_image",
+    default=True,
+    show_default=True,
+    help="Table 2's single-image fit gets what one image yields: a monocular-quality mesh, a mask from "
+    "the image, a generic focal length (off: the dataset's tracked mesh, mask and calibration).",
 )
 @out_option("Output folder.")
 @fit_iterations_option((100, 100), "Inversion and finetuning iterations of every fit.")
@@ -99,7 +132,11 @@ def evaluate_command(
     data: tuple[str, ...],
     stage1: Path,
     stage2: Path,
-    single_stage: Path | None,
+    single_stage: tuple[Path, ...],
+    ablation: tuple[tuple[str, Path, Path], ...],
+    ablation_fits: bool,
+    unknown_lighting: bool,
+    monocular_single_image: bool,
     out: Path,
     fit_iterations: tuple[int, int],
     split: str,
@@ -124,12 +161,19 @@ def evaluate_command(
     from relightanyone.model.device import resolve_device
 
     answers = WorldAnswers(world)
+    arms: dict[str, tuple[Path, Path]] = {}
+    for arm, arm_stage1, arm_stage2 in ablation:
+        if arm in arms:
+            raise click.UsageError(f"--ablation {arm} given twice")
+        arms[arm] = (arm_stage1, arm_stage2)
     inputs = EvaluationInputs(
         datasets=world_datasets(data, answers),
         stage1=stage1,
         stage2=stage2,
-        single_stage=single_stage,
+        single_stage=single_stage[0] if single_stage else None,
+        single_stage_variants=tuple(single_stage[1:]),
         answers=answers,
+        ablation=arms,
     )
     settings = EvaluationSettings(
         inversion_iterations=fit_iterations[0],
@@ -138,6 +182,9 @@ def evaluate_command(
         lights_subset=lights_subset or None,
         envmaps=envmaps or None,
         subjects_per_dataset=subjects or None,
+        ablation_fits=ablation_fits,
+        unknown_lighting=unknown_lighting,
+        monocular_single_image=monocular_single_image,
         split=split,
         views_per_step=views_per_step,
         seed=seed,

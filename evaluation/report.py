@@ -17,6 +17,7 @@ from urllib.parse import quote
 import numpy as np
 
 from relightanyone.align.colour import linear_to_display
+from relightanyone.evaluation.ablation import budget_text
 from relightanyone.evaluation.protocol import (
     DECIDING_METRIC,
     PAPER_NUMBERS,
@@ -44,8 +45,9 @@ ROW_NAMES = {
     "single_stage": "single-stage baseline",
     "multi_view": "ours, multi-view fit",
     "single_image": "ours, single-image fit",
-    "with_lighting_code": "with z_l (OLAT dataset's code: the method)",
-    "without_lighting_code": "without z_l swap (own dataset's code)",
+    "with_lighting_code": "with z_l (trained with lighting codes: the method)",
+    "without_lighting_code": "without z_l (stage 1 trained without lighting codes)",
+    "colour_matrix": "3×3 colour matrix per dataset, no z_l",
 }
 # Characters that start Markdown syntax (emphasis, links, images, code, table cells) anywhere in a line.
 MARKDOWN_SPECIAL = re.compile(r"([\\`*_\[\]()!|])")
@@ -138,20 +140,31 @@ def _format(metric: str, value: float | None) -> str:
 
 
 def metric_table(
-    rows: dict[str, dict], metrics: list[str], extra: dict[str, dict] | None = None
+    rows: dict[str, dict],
+    metrics: list[str],
+    extra: dict[str, dict] | None = None,
+    budgets: dict[str, dict] | None = None,
 ) -> list[str]:
-    """Markdown table lines: one line per method (results rows then extra rows such as paper numbers)."""
-    lines = ["| method | " + " | ".join(ARROWS[m] for m in metrics) + " | images |"]
-    lines.append("|---" * (len(metrics) + 2) + "|")
+    """Markdown table lines: one line per method (results rows then extra rows such as paper numbers),
+    with each method's training budget when ``budgets`` (row -> budget) is given."""
+    budget_column = budgets is not None
+    lines = [
+        "| method | "
+        + " | ".join(ARROWS[m] for m in metrics)
+        + " | images |"
+        + (" training budget |" if budget_column else "")
+    ]
+    lines.append("|---" * (len(metrics) + 2 + budget_column) + "|")
     for name, values in rows.items():
         cells = " | ".join(_format(m, values.get(m)) for m in metrics)
+        budget = f" {markdown_text(budget_text(budgets.get(name)))} |" if budget_column else ""
         lines.append(
-            f"| {markdown_text(ROW_NAMES.get(name, name))} | {cells} | {values.get('images', '–')} |"
+            f"| {markdown_text(ROW_NAMES.get(name, name))} | {cells} | {values.get('images', '–')} |{budget}"
         )
     for name, values in (extra or {}).items():
         # Published numbers exactly as printed (0.87, not 0.8700).
         cells = " | ".join(f"{values[m]:g}" if m in values else "–" for m in metrics)
-        lines.append(f"| {markdown_text(name)} | {cells} | – |")
+        lines.append(f"| {markdown_text(name)} | {cells} | – |" + (" – |" if budget_column else ""))
     return lines
 
 
@@ -229,22 +242,37 @@ TABLE_TEXT = {
         "compared in all evaluation cameras.",
     ),
     "table3": (
-        "Table 3 (not measurable in the paper): lighting code on flat-lit subjects",
-        "Stage-1 training subjects of the flat-lit datasets (never seen lit by single lights), decoded from "
-        "their identity codes without any fitting, as the OLAT expansion renders them, and relit under rig "
-        "lights; compared with their true OLAT images (rendered from the world). *With z_l*: the stage-1 "
-        "colours fed to stage 2 are decoded with the OLAT dataset's lighting code (the method). *Without*: "
-        "with the subject's own dataset's code, i.e. no lighting alignment before stage 2.",
+        "Table 3: the lighting-code ablation on flat-lit subjects (expansion accuracy)",
+        "Each arm is a stage 1 and its stage 2 trained on the same data: *with z_l* (the method), *without "
+        "z_l* (stage 1 trained without lighting codes) and the *3×3 colour matrix* baseline (no lighting "
+        "codes; every flat-lit dataset aligned to the OLAT dataset by a learned 3×3 matrix before stage 1). "
+        "Stage-1 training subjects of the flat-lit datasets (never seen lit by single lights; stage 2 never "
+        "saw them) are decoded from their identity codes without fitting, as the OLAT expansion renders "
+        "them, relit under rig lights and compared with their true OLAT images (rendered from the world).",
     ),
     "table3_fitted": (
-        "Table 3b: lighting code on held-out flat-lit subjects, after fitting",
-        "Held-out subjects of the flat-lit datasets, fitted on their full-on frame (multi-view) with each "
-        "lighting code and relit under rig lights. Fitting also estimates the scene lighting (one RGB "
-        "intensity per rig light) and finetunes stage 1, which can absorb what the code changes; this "
-        "table shows how much of the code's effect survives fitting.",
+        "Table 3b: held-out flat-lit subjects, fitted",
+        "Held-out subjects of the flat-lit datasets, fitted on their full-on frame (multi-view), relit "
+        "under rig lights and compared with their true OLAT images; with every ablation arm when the "
+        "evaluation fits them all, else with the main two-stage runs. Fitting also estimates the scene "
+        "lighting and finetunes stage 1, which can absorb part of what the arms change.",
     ),
 }
 TABLES = ("table1", "table2", "table3", "table3_fitted")
+ABLATION_TABLES = ("table3", "table3_fitted")
+
+
+def ablation_note(ablation: dict) -> str:
+    """One line on the ablation's arms: whether they were trained on equal budgets."""
+    arms = ", ".join(markdown_text(ROW_NAMES.get(row, row)) for row in ablation.get("arms", {}))
+    if ablation.get("budgets_agree"):
+        return f"Arms: {arms}; every arm trained the same number of views in stage 1 and in stage 2."
+    return (
+        f"Arms: {arms}. **The arms' training budgets differ** (column above), so the comparison is not "
+        "at equal budget."
+    )
+
+
 # Tables whose subjects are stage-1 training subjects on purpose (no held-out warning there).
 TRAINING_SUBJECT_TABLES = ("table3",)
 
@@ -306,6 +334,19 @@ def write_report(out: Path, results: dict, tables: dict, input_images: dict[str,
         "subject's mask; PSNR with peak 1, RMSE, SSIM (kornia, 11×11 Gaussian window, averaged over the "
         "mask); each metric is computed per image, averaged per subject, then over subjects, so mean PSNR "
         "is not the PSNR of the mean RMSE.",
+        "- fit inputs of Tables 1-2: "
+        + (
+            "the world's renders under a lighting unknown to the fit (per subject: `input` in evaluation.json); "
+            "the lighting prior is the OLAT dataset's full-on rig"
+            if settings.get("unknown_lighting")
+            else "the dataset's full-on rows (lit by the calibrated rig the lighting prior starts from)"
+        ),
+        "- single image (Table 2): "
+        + (
+            "a monocular-quality mesh, a mask from the image alone and a generic focal length"
+            if settings.get("monocular_single_image")
+            else "the dataset's tracked mesh, mask and calibration"
+        ),
         f"- {results.get('lpips')}",
         f"- light units: {results.get('units', {}).get('note', 'not checked (no OLAT rows with answers)')}"
         + (
@@ -337,8 +378,12 @@ def write_report(out: Path, results: dict, tables: dict, input_images: dict[str,
             continue
         extra = PAPER_NUMBERS.get(table, {})
         lines += (
-            ["Mean over subjects (images: total):", ""] + metric_table(entry["mean"], metrics, extra) + [""]
+            ["Mean over subjects (images: total):", ""]
+            + metric_table(entry["mean"], metrics, extra, entry.get("budgets"))
+            + [""]
         )
+        if table in ABLATION_TABLES and "ablation" in results:
+            lines += [ablation_note(results["ablation"]), ""]
         lines += interval_lines(entry)
         for key, subject in entry["subjects"].items():
             cameras = ", ".join(markdown_text(c) for c in subject["cameras"])

@@ -60,6 +60,7 @@ def run_evaluation(
     evaluation = Evaluation(inputs, settings)
     results = evaluation.run()
     results["settings"] = asdict(settings)
+    inputs = evaluation.inputs  # the single-stage run chosen on validation subjects, when there was a choice
     results["protocol"] = protocol_record(settings, evaluation.fit_settings())
     results["protocol_sha256"] = protocol_hash(results["protocol"])
     add_statistics(results)

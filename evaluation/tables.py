@@ -23,6 +23,18 @@ import numpy as np
 import torch
 
 from relightanyone.errors import InputError
+from relightanyone.evaluation.ablation import (
+    arm_dataset,
+    arm_subject_index,
+    budgets_agree,
+    load_arms,
+    single_run_budget,
+)
+from relightanyone.evaluation.baseline_choice import (
+    choose_baseline,
+    require_validation,
+    validation_subjects,
+)
 from relightanyone.evaluation.cases import (
     EvalView,
     LightCase,
@@ -39,17 +51,23 @@ from relightanyone.evaluation.cases import (
     view_cameras,
 )
 from relightanyone.evaluation.metrics import LpipsMetric, image_metrics, lpips_status
+from relightanyone.evaluation.single_image import monocular_views
 from relightanyone.evaluation.single_stage import SingleStageFitter, load_single_stage_run
 from relightanyone.evaluation.splits import refuse_trained_subjects, runs_that_trained, training_runs
 from relightanyone.evaluation.truth import WorldAnswers
+from relightanyone.evaluation.unknown_lighting import (
+    select_views,
+    subject_input_lighting,
+    unknown_lighting_views,
+)
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import make_mesh_key
 from relightanyone.format.torch_dataset import NormalizedTorchDataset, image_hwc
 from relightanyone.model.fit.avatar import check_pinhole_cameras, decoded_avatar, relight_views
 from relightanyone.model.fit.fitter import FitSettings, Fitter, load_relightable_model
-from relightanyone.model.fit.views import load_fit_views
-from relightanyone.model.train.checkpoint import load_checkpoint
-from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
+from relightanyone.model.fit.views import FitViews, load_fit_views
+from relightanyone.model.train.budget import two_stage_budget
+from relightanyone.model.train.run_files import RUN_INFO_NAME
 from relightanyone.render.lights import PointLights
 
 # true_image(dataset, subject, camera, light) -> (image (H, W, 3), mask (H, W)) in the row's geometry.
@@ -67,6 +85,9 @@ class EvaluationSettings:
     lights_subset: int | None = 16  # OLAT lights compared (evenly spread rig indices)
     envmaps: int | None = None  # environment maps compared (all when None)
     subjects_per_dataset: int | None = 1  # held-out subjects per dataset (all when None)
+    ablation_fits: bool = True  # Table 3b fits held-out flat-lit subjects with every ablation arm
+    unknown_lighting: bool = True  # Table 1/2 inputs under the world's unknown lighting (else the rows)
+    monocular_single_image: bool = True  # Table 2's single image: monocular mesh, own mask, generic focal
     split: str = "test"  # the held-out split scored: "test" (reported numbers) or "val" (model selection)
     views_per_step: int = 4
     seed: int = 0
@@ -83,7 +104,11 @@ class EvaluationInputs:
     stage1: Path
     stage2: Path
     single_stage: Path | None = None
+    # Further single-stage runs (other loss variants): the baseline is the best on validation subjects.
+    single_stage_variants: tuple[Path, ...] = ()
     answers: WorldAnswers | None = None
+    # Lighting-code ablation arms: arm name (``with-zl``, ``no-zl``, ``colour-matrix``) -> (stage 1, stage 2)
+    ablation: dict[str, tuple[Path, Path]] = field(default_factory=dict)
     true_olat_image: TrueOlatImage | None = None
 
 
@@ -252,9 +277,7 @@ class Evaluation:
             )
         self.device = torch.device(settings.device)
         self.model = load_relightable_model(inputs.stage1, inputs.stage2, self.device)
-        self.single = None
-        if inputs.single_stage is not None:
-            self.single = load_single_stage_run(inputs.single_stage, self.device)
+        self.arms = load_arms(inputs.ablation, self.model, inputs.stage1, inputs.stage2, self.device)
         available, reason = lpips_status()
         self.lpips = LpipsMetric() if available else None
         self.lpips_note = reason
@@ -263,7 +286,47 @@ class Evaluation:
         self.light_indices = evenly_spread(rig_size, settings.lights_subset)
         self.results: dict = {"lpips": reason, "timings_s": {}, "units": {}}
         self.grids: dict[str, list] = {}
+        self.input_lightings: dict[str, dict] = {}
         self.inputs_images: dict[str, np.ndarray] = {}
+        self.single = None
+        candidates = [c for c in (inputs.single_stage, *inputs.single_stage_variants) if c is not None]
+        if len(candidates) > 1:
+            self.single, chosen, self.results["baseline_choice"] = self.choose_single_stage(candidates)
+            self.inputs = dataclasses.replace(inputs, single_stage=chosen, single_stage_variants=())
+        elif candidates:
+            self.single = load_single_stage_run(candidates[0], self.device)
+        self.budgets = self._budgets()
+
+    def choose_single_stage(self, candidates: list[Path]):
+        """(run, its folder, the record of the choice): the single-stage candidate with the best OLAT
+        relighting on the OLAT dataset's validation subjects (:mod:`relightanyone.evaluation.baseline_choice`)."""
+        path = self.inputs.datasets[self.olat_world]
+        subjects = validation_subjects(path, self.inputs.answers, self.olat_world)
+        require_validation(subjects, path, len(candidates))
+        runs = {str(c): load_single_stage_run(c, self.device) for c in candidates}
+        scores: dict[str, list[float]] = {str(c): [] for c in candidates}
+        for subject in subjects:
+            cameras, _ = subject_cameras(path, subject, self.settings.max_views)
+            cases = row_olat_cases(path, subject, self.model.rig, self.light_indices, cameras)
+            if not cases:
+                raise InputError(
+                    f"{path}: validation subject {subject!r} has no OLAT rows to score the baseline on"
+                )
+            for candidate in candidates:
+                label = f"single-stage validation, {Path(candidate).name}"
+                avatar = self.fit(self.olat_world, subject, cameras, label, single_run=runs[str(candidate)])
+                scores[str(candidate)] += compare(avatar, cases, None).scores["psnr"]
+        best, record = choose_baseline(candidates, scores)
+        return runs[str(best)], Path(best), record | {"subjects": subjects}
+
+    def _budgets(self) -> dict[str, dict]:
+        """Training budget of the model behind every table row (row name -> budget)."""
+        two_stage = two_stage_budget(self.inputs.stage1, self.inputs.stage2)
+        budgets = {"two_stage": two_stage, "multi_view": two_stage, "single_image": two_stage}
+        if self.inputs.single_stage is not None:
+            budgets["single_stage"] = single_run_budget(self.inputs.single_stage)
+        budgets.update({row: arm.budget for row, arm in self.arms.items()})
+        return budgets
 
     def _olat_world_name(self) -> str:
 
@@ -286,16 +349,29 @@ class Evaluation:
             progress=self.settings.progress,
         )
 
-    def fit(self, world_name: str, subject: str, cameras: list[str], label: str, model=None, single=False):
-        """Fit a subject's full-on frame in ``cameras``; returns the avatar (timed under ``label``)."""
+    def fit(
+        self,
+        world_name: str,
+        subject: str,
+        cameras: list[str],
+        label: str,
+        model=None,
+        single=False,
+        data: Path | None = None,
+        views: FitViews | None = None,
+        single_run=None,
+    ):
+        """Fit ``views``, by default the subject's full-on frame in ``cameras`` (read from ``data``, default
+        the evaluated dataset); returns the avatar (timed under ``label``)."""
 
-        views = load_fit_views(self.inputs.datasets[world_name], subject, cameras=cameras)
+        if views is None:
+            views = load_fit_views(data or self.inputs.datasets[world_name], subject, cameras=cameras)
         self.inputs_images.setdefault(f"{world_name}/{subject}", views.images[0].permute(1, 2, 0).numpy())
         views = views.to(self.device)
         torch.manual_seed(self.settings.seed)
         start = time.perf_counter()
-        if single:
-            fitter = SingleStageFitter(self.single, views, self.fit_settings())
+        if single or single_run is not None:
+            fitter = SingleStageFitter(single_run or self.single, views, self.fit_settings())
         else:
             fitter = Fitter(model or self.model, views, self.fit_settings())
         fitter.invert()
@@ -377,7 +453,6 @@ class Evaluation:
             cameras, frontal = subject_cameras(
                 self.inputs.datasets[world_name], subject, self.settings.max_views
             )
-            ours = self.fit(world_name, subject, cameras, "two-stage multi-view")
             cases, source = self.olat_cases(world_name, subject, cameras)
             if source == "normalized OLAT rows":
                 self.check_units(world_name, subject, cameras, cases)
@@ -386,23 +461,63 @@ class Evaluation:
                 self.results["units"]["expected_from_lights"] = expected_olat_over_full_on(
                     self.inputs.datasets[world_name]
                 )
+            inputs = self.held_out_input(world_name, subject, cameras)
+            ours = self.fit(world_name, subject, cameras, "two-stage multi-view", views=inputs)
             rows = {"two_stage": compare(ours, cases, self.lpips)}
             if self.single is not None:
-                baseline = self.fit(world_name, subject, cameras, "single-stage multi-view", single=True)
+                baseline = self.fit(
+                    world_name, subject, cameras, "single-stage multi-view", single=True, views=inputs
+                )
                 rows["single_stage"] = compare(baseline, cases, self.lpips)
             table1[key] = {
                 "source": source,
+                "input": self.input_description(inputs),
                 "cameras": cameras,
                 "lights": [c.label for c in cases],
                 "seen_in_training": self.seen_in_training(world_name, subject),
                 "rows": rows,
             }
-            table2_entry = self.table2_subject(world_name, subject, cameras, frontal, ours)
+            table2_entry = self.table2_subject(world_name, subject, cameras, frontal, ours, inputs)
             if table2_entry is not None:
                 table2[key] = table2_entry
         self.tables = {"table1": table1, "table2": table2}
 
-    def table2_subject(self, world_name, subject, cameras, frontal, multi_view_avatar):
+    def held_out_input(self, world_name: str, subject: str, cameras: list[str]) -> FitViews | None:
+        """The fit input of a Table 1/2 subject under the world's unknown lighting
+        (:mod:`relightanyone.evaluation.unknown_lighting`); None (the dataset's full-on rows) when
+        ``settings.unknown_lighting`` is off or the world has no answers for the dataset."""
+        answers = self.inputs.answers
+        if not self.settings.unknown_lighting or answers is None or world_name not in answers.splits:
+            return None
+        path = self.inputs.datasets[world_name]
+        dataset = NormalizedDataset(path)
+        frame = answer_frame(answers, world_name, path, subject, cameras)
+        lighting = subject_input_lighting(answers, world_name, subject)
+        tracked = dataset.meshes().get(make_mesh_key(subject, frame.frame))
+        tracked = None if tracked is None else torch.as_tensor(np.asarray(tracked), dtype=torch.float32)
+        views = unknown_lighting_views(
+            answers,
+            frame,
+            lighting,
+            answer_masks(answers, frame),
+            dataset.name,
+            tracked,
+            self.results["units"].get("answer_scale"),
+        )
+        self.input_lightings[f"{world_name}/{subject}"] = lighting.describe()
+        return views
+
+    def input_description(self, views: FitViews | None) -> dict:
+        """What a fit was given: the input lighting and the lighting prior it started from."""
+        if views is None:
+            return {"images": "the dataset's full-on rows", "lighting": "the calibrated full-on rig"}
+        return {
+            "images": "the world's render under a lighting unknown to the fit",
+            "lighting": self.input_lightings.get(f"{self.olat_world}/{views.subject}"),
+            "prior": "the full-on rig of the OLAT dataset's training captures (lights.arrow)",
+        }
+
+    def table2_subject(self, world_name, subject, cameras, frontal, multi_view_avatar, inputs=None):
         answers = self.inputs.answers
         if answers is None or world_name not in answers.splits or not answers.envmap_names():
             return None
@@ -410,12 +525,21 @@ class Evaluation:
         envmaps = [envmaps[i] for i in evenly_spread(len(envmaps), self.settings.envmaps)]
         frame = answer_frame(answers, world_name, self.inputs.datasets[world_name], subject, cameras)
         cases = answer_envmap_cases(answers, frame, self.model.rig, envmaps, answer_masks(answers, frame))
-        single_image = self.fit(world_name, subject, [frontal], "two-stage single image")
+        if inputs is None:
+            single_input = load_fit_views(self.inputs.datasets[world_name], subject, cameras=[frontal])
+        else:
+            single_input = select_views(inputs, [frontal])
+        single_record = {"mesh": "the dataset's tracked mesh", "mask": "the dataset's", "focal": "calibrated"}
+        if self.settings.monocular_single_image:
+            single_input, single_record = monocular_views(single_input, self.settings.seed)
+        single_image = self.fit(world_name, subject, [frontal], "two-stage single image", views=single_input)
         return {
             "source": "world answers relit by image-based relighting (weights recovered from the answers)",
+            "input": self.input_description(inputs),
             "seen_in_training": self.seen_in_training(world_name, subject),
             "cameras": cameras,
             "single_image_camera": frontal,
+            "single_image_input": single_record,
             "envmaps": envmaps,
             "weight_fit_max_residual": max(c.extra["weight_fit_max_residual"] for c in cases),
             "rows": {
@@ -425,15 +549,16 @@ class Evaluation:
         }
 
     def table3(self) -> None:
-        """The lighting-code ablation on flat-lit datasets, with and without the OLAT dataset's z_l.
+        """The lighting-code ablation on flat-lit datasets: every arm (:mod:`relightanyone.evaluation.ablation`)
+        relit under the rig lights and compared with the subjects' true OLAT images.
 
-        ``table3``: stage-1 training subjects decoded from their identity codes, no fitting (what the OLAT
-        expansion renders), so nothing can absorb the code's effect. ``table3_fitted``: held-out subjects
-        fitted on their full-on frame; fitting also estimates the scene lighting and finetunes stage 1.
+        ``table3``: stage-1 training subjects of each arm decoded from their identity codes, no fitting
+        (what the OLAT expansion renders), so nothing can absorb a difference between the arms.
+        ``table3_fitted``: held-out subjects fitted on their full-on frame, with every arm when
+        ``settings.ablation_fits``, else with the main runs only.
         """
 
         stage1_names = self._stage1_dataset_names()
-        stage1_subjects = self._stage1_subjects()
         decoded, fitted = {}, {}
         for world_name, path in sorted(self.inputs.datasets.items()):
             dataset = NormalizedDataset(path)
@@ -442,14 +567,12 @@ class Evaluation:
             if dataset.name not in stage1_names:
                 raise InputError(
                     f"{path}: dataset {dataset.name!r} is not in stage-1 run {self.inputs.stage1} "
-                    f"({stage1_names}); the ablation needs its lighting code"
+                    f"({stage1_names}); the ablation needs its subjects"
                 )
-            own_code = self.model.stage1.lighting_codes[stage1_names.index(dataset.name)].detach().clone()
-            without = dataclasses.replace(self.model, lighting_code=own_code)
-            known = sorted(s.split("/", 1)[1] for s in stage1_subjects if s.split("/", 1)[0] == dataset.name)
+            reference = self.arms["with_lighting_code"].subjects
+            known = sorted(s.split("/", 1)[1] for s in reference if s.split("/", 1)[0] == dataset.name)
             for subject in known[: self.settings.subjects_per_dataset]:
                 cameras, _ = subject_cameras(path, subject, self.settings.max_views)
-                index = stage1_subjects.index(f"{dataset.name}/{subject}")
                 frame = min(
                     NormalizedTorchDataset(dataset, subjects=subject, patterns="full").column("frame")
                 )
@@ -460,50 +583,50 @@ class Evaluation:
                     else torch.as_tensor(np.asarray(tracked), dtype=torch.float32, device=self.device)
                 )
                 self.inputs_images.setdefault(f"{world_name}/{subject}", self._first_image(path, subject))
+                avatars = {
+                    row: decoded_avatar(arm.model, arm_subject_index(arm, dataset.name, subject), tracked, {})
+                    for row, arm in self.arms.items()
+                }
                 decoded[f"{world_name}/{subject}"] = self._ablation_entry(
-                    world_name,
-                    subject,
-                    cameras,
-                    decoded_avatar(self.model, index, tracked, {}),
-                    decoded_avatar(without, index, tracked, {}),
+                    world_name, subject, cameras, avatars
                 )
             for subject in self.held_out_subjects(world_name):
                 cameras, _ = subject_cameras(path, subject, self.settings.max_views)
+                if self.settings.ablation_fits:
+                    avatars = {
+                        row: self.fit(
+                            world_name,
+                            subject,
+                            cameras,
+                            f"two-stage fit, {row}",
+                            model=arm.model,
+                            data=arm_dataset(arm, dataset.name, path),
+                        )
+                        for row, arm in self.arms.items()
+                    }
+                else:
+                    avatars = {"two_stage": self.fit(world_name, subject, cameras, "two-stage multi-view")}
                 fitted[f"{world_name}/{subject}"] = self._ablation_entry(
-                    world_name,
-                    subject,
-                    cameras,
-                    self.fit(world_name, subject, cameras, "two-stage with z_l (OLAT code)"),
-                    self.fit(world_name, subject, cameras, "two-stage own z_l", model=without),
+                    world_name, subject, cameras, avatars
                 )
         self.tables["table3"] = decoded
         self.tables["table3_fitted"] = fitted
 
-    def _ablation_entry(
-        self, world_name: str, subject: str, cameras: list[str], with_code, without_code
-    ) -> dict:
-        """A Table-3 entry: both avatars relit under the rig lights and compared with the subject's truth."""
+    def _ablation_entry(self, world_name: str, subject: str, cameras: list[str], avatars: dict) -> dict:
+        """A Table-3 entry: every avatar relit under the rig lights and compared with the subject's truth."""
         cases, source = self.olat_cases(world_name, subject, cameras)
         return {
             "source": source,
             "seen_in_training": self.seen_in_training(world_name, subject),
             "cameras": cameras,
             "lights": [c.label for c in cases],
-            "rows": {
-                "with_lighting_code": compare(with_code, cases, self.lpips),
-                "without_lighting_code": compare(without_code, cases, self.lpips),
-            },
+            "rows": {row: compare(avatar, cases, self.lpips) for row, avatar in avatars.items()},
         }
 
     def _first_image(self, path: Path, subject: str) -> np.ndarray:
         """(H, W, 3) the subject's first full-on row (the input column of the image grids)."""
 
         return image_hwc(NormalizedTorchDataset(path, subjects=subject, patterns="full")[0])
-
-    def _stage1_subjects(self) -> list[str]:
-        """``dataset/subject`` of every stage-1 identity code, in code order."""
-
-        return list(load_checkpoint(Path(self.inputs.stage1) / CHECKPOINT_NAME)["subjects"])
 
     def held_out_subjects(self, world_name: str) -> list[str]:
         """The evaluated subjects of the settings' held-out split in one world dataset."""
@@ -534,6 +657,7 @@ class Evaluation:
                     for metric, value in summary.items():
                         means.setdefault(row, {}).setdefault(metric, []).append(value)
             self.results[name] = {
+                "budgets": {row: self.budgets.get(row) for row in means},
                 "subjects": entries,
                 "mean": {
                     row: {
@@ -542,6 +666,13 @@ class Evaluation:
                     for row, metrics in means.items()
                 },
             }
+        self.results["ablation"] = {
+            "arms": {
+                row: {"runs": list(arm.runs), "lighting_code": arm.lighting_code}
+                for row, arm in self.arms.items()
+            },
+            "budgets_agree": budgets_agree(self.arms),
+        }
         self.results["light_indices"] = self.light_indices
         self.results["olat_dataset"] = self.olat_world
         return self.results

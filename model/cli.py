@@ -123,6 +123,13 @@ def train_group() -> None:
     show_default=True,
     help="Run the colour warm-up for --uncalibrated datasets (off: reuse matrices already stored).",
 )
+@click.option(
+    "--lighting-code/--no-lighting-code",
+    default=True,
+    show_default=True,
+    help="Learn a lighting code per dataset (off: the ablation without z_l; datasets are aligned only by "
+    "their colour matrices).",
+)
 @ITERATIONS_OPTION
 @WARMUP_ITERATIONS_OPTION
 @BATCH_SIZE_OPTION
@@ -139,6 +146,7 @@ def train_stage1_command(
     out,
     uncalibrated,
     colour_warmup,
+    lighting_code,
     iterations,
     warmup_iterations,
     batch_size,
@@ -182,6 +190,7 @@ def train_stage1_command(
         out=out,
         preset=chosen,
         seed=seed,
+        lighting_code=lighting_code,
         resume=resume,
         eval_views_per_dataset=eval_views,
         device=device,
@@ -216,6 +225,22 @@ def train_stage1_command(
     is_flag=True,
     help="Train the single-stage baseline instead: stage 1 with relightable decoders, OLAT dataset only.",
 )
+@click.option(
+    "--single-stage-loss",
+    type=click.Choice(["background", "masked"]),
+    default="background",
+    show_default=True,
+    help="The baseline's image loss: over a random background on the whole crop, or inside the mask only.",
+)
+@click.option(
+    "--match-budget",
+    nargs=2,
+    type=EXISTING_FOLDER,
+    default=None,
+    metavar="STAGE1_RUN STAGE2_RUN",
+    help="Train as many views as these two runs together (iterations = their views / batch size); "
+    "gives the single-stage baseline the two-stage model's budget. Replaces --iterations.",
+)
 @ITERATIONS_OPTION
 @BATCH_SIZE_OPTION
 @seed_option()
@@ -245,6 +270,8 @@ def train_stage2_command(
     out,
     preset,
     single_stage,
+    single_stage_loss,
+    match_budget,
     iterations,
     batch_size,
     seed,
@@ -265,16 +292,28 @@ def train_stage2_command(
             "stage 2 needs --stage1 RUN (a stage-1 run trained with this dataset), or --single-stage"
         )
     from relightanyone.model.networks.presets import get_preset, get_stage2_preset, with_overrides
+    from relightanyone.model.train.budget import matched_iterations, two_stage_budget
     from relightanyone.model.train.stage2 import Stage2Config, train_stage2
 
     _set_threads(threads)
+    chosen = with_overrides(get_stage2_preset(preset), iterations=iterations, batch_size=batch_size)
+    if match_budget is not None:
+        if iterations is not None:
+            raise click.UsageError("give --iterations or --match-budget, not both")
+        budget = two_stage_budget(*match_budget)
+        chosen = chosen.replace(iterations=matched_iterations(budget["samples"], chosen.batch_size))
+        click.echo(
+            f"matching the budget of {match_budget[0]} + {match_budget[1]}: {budget['samples']} views = "
+            f"{chosen.iterations} iterations of {chosen.batch_size}"
+        )
     config = Stage2Config(
         data=data,
         out=out,
-        preset=with_overrides(get_stage2_preset(preset), iterations=iterations, batch_size=batch_size),
+        preset=chosen,
         stage1_run=None if single_stage else stage1_run,
         single_stage=single_stage,
         stage1_preset=get_preset(preset) if single_stage else None,
+        single_stage_loss=single_stage_loss,
         seed=seed,
         resume=resume,
         device=device,

@@ -16,6 +16,7 @@ from helpers.sphere_world import (
     SIZE,
     build_sphere_world,
     sphere_camera,
+    train_ablation_arms,
     true_olat_image,
 )
 
@@ -159,6 +160,7 @@ def evaluated(tmp_path_factory):
         stage2=paths["stage2"],
         single_stage=paths["single_stage"],
         answers=WorldAnswers(world),
+        ablation=train_ablation_arms(paths),
     )
     settings = EvaluationSettings(inversion_iterations=3, finetune_iterations=2, max_views=3, progress=False)
     out = root / "out"
@@ -222,16 +224,24 @@ def test_tables_and_report(evaluated):
     table2 = results["table2"]["subjects"]["d1/s02"]
     assert table2["weight_fit_max_residual"] < 1e-2
     assert set(table2["metrics"]) == {"multi_view", "single_image"}
-    # The ablation on the stage-1 training subject (decoded) and on the held-out one (fitted).
+    # The ablation's three trained arms on the stage-1 training subject (decoded) and on the held-out
+    # one (fitted), each with its training budget.
+    arms = {"with_lighting_code", "without_lighting_code", "colour_matrix"}
     for table, subject in (("table3", "d2/f00"), ("table3_fitted", "d2/f01")):
         entry = results[table]["subjects"][subject]
-        assert set(entry["metrics"]) == {"with_lighting_code", "without_lighting_code"}
+        assert set(entry["metrics"]) == arms
         assert entry["metrics"]["with_lighting_code"]["images"] == 4 * 3
-        # Different lighting codes give different relit images, so the ablation measures something.
-        assert (
-            entry["metrics"]["with_lighting_code"]["rmse"]
-            != entry["metrics"]["without_lighting_code"]["rmse"]
-        )
+        # Differently trained arms give different relit images, so the ablation measures something.
+        rmse = {entry["metrics"][arm]["rmse"] for arm in arms}
+        assert len(rmse) == 3, entry["metrics"]
+        assert set(results[table]["budgets"]) == arms
+    assert results["ablation"]["budgets_agree"] is True
+    budget = results["table3"]["budgets"]["without_lighting_code"]
+    assert (
+        budget["stage1"]["iterations"] == 6
+        and budget["samples"] == budget["stage1"]["samples"] + (budget["stage2"]["samples"])
+    )
+    assert results["table1"]["budgets"]["single_stage"]["single_stage"]["stage"] == "single-stage"
     assert results["table3"]["subjects"]["d2/f00"]["seen_in_training"] == ["stage 1"]
     saved = json.loads((out / "evaluation.json").read_text())
     assert saved["table1"]["mean"]["two_stage"]["psnr"] == pytest.approx(
@@ -241,6 +251,7 @@ def test_tables_and_report(evaluated):
         out / "evaluation.json"
     ).read_text()
     assert len(saved["goals"]) == 8
+    assert "training budget" in report_text(out) and "3×3 colour matrix" in report_text(out)
     # One held-out subject per dataset: a smoke run, whose comparisons have no interval and no win.
     assert saved["run_kind"] == "smoke run" and saved["held_out_subjects"] == {"d1": 1, "d2": 1}
     assert saved["protocol"]["split"] == "test" and len(saved["protocol_sha256"]) == 64
@@ -263,6 +274,10 @@ def test_tables_and_report(evaluated):
         "table3_d2_f00.png",
         "table3_fitted_d2_f01.png",
     }
+
+
+def report_text(out: Path) -> str:
+    return (out / "report.md").read_text()
 
 
 def test_batched_point_light_renders_match_relight(evaluated):
@@ -360,3 +375,125 @@ def test_report_md_escapes_names_from_the_data(tmp_path):
     # Every table row still has one cell per column.
     for row in re.findall(r"<tr>(.*?)</tr>", html, flags=re.S):
         assert row.count("<td>") in (0, 3), row
+
+
+def test_held_out_inputs_are_lit_by_an_unknown_lighting(evaluated):
+    """Table 1/2 fit the held-out subject on the world's render under its own lighting, which is the
+    analytic sphere under the weighted rig (the renderer is linear in its lights)."""
+    from relightanyone.evaluation.cases import answer_frame
+    from relightanyone.evaluation.unknown_lighting import relit_input_image, subject_input_lighting
+
+    entry = evaluated["results"]["table1"]["subjects"]["d1/s02"]
+    assert entry["input"]["images"].startswith("the world's render")
+    assert "training captures" in entry["input"]["prior"]
+    answers = WorldAnswers(evaluated["world"])
+    lighting = subject_input_lighting(answers, "d1", "s02")
+    assert entry["input"]["lighting"]["level"] == pytest.approx(lighting.level, abs=1e-4)
+    frame = answer_frame(answers, "d1", evaluated["paths"]["data"], "s02", ["cam01"])
+    image = relit_input_image(answers, frame, "cam01", lighting.weights)
+    truth = sum(lighting.weights[k] * true_olat_image("s02", 1, k)[0] for k in range(4))
+    inside = true_olat_image("s02", 1, 0)[1]
+    np.testing.assert_allclose(image[inside], truth[inside], rtol=5e-3, atol=5e-3)
+    table2 = evaluated["results"]["table2"]["subjects"]["d1/s02"]
+    assert table2["input"] == entry["input"]
+    # The single-image fit gets what one image yields (see test_single_image.py).
+    single = table2["single_image_input"]
+    assert single["mask"].startswith("foreground") and "generic_fov_deg" in single["focal"]
+
+
+def test_the_baseline_variant_is_chosen_on_validation_subjects_only(evaluated, tmp_path):
+    """Several single-stage runs: the one with the best validation relighting is Table 1's baseline; with no
+    validation subjects the choice is refused instead of being made on test subjects."""
+    import shutil
+
+    from helpers.sphere_world import tiny_stage1_preset, tiny_stage2_preset
+
+    from relightanyone.errors import InputError
+    from relightanyone.evaluation.tables import Evaluation, EvaluationInputs, EvaluationSettings
+    from relightanyone.model.train.stage2 import Stage2Config, train_stage2
+
+    paths = evaluated["paths"]
+    masked = tmp_path / "single-masked"
+    train_stage2(
+        Stage2Config(
+            paths["data"],
+            masked,
+            tiny_stage2_preset(),
+            single_stage=True,
+            single_stage_loss="masked",
+            stage1_preset=tiny_stage1_preset(iterations=4, crop_size=SIZE, held_out_cameras=0),
+            progress=False,
+        )
+    )
+    settings = EvaluationSettings(inversion_iterations=1, finetune_iterations=1, max_views=2, progress=False)
+
+    def inputs(world: Path) -> EvaluationInputs:
+        return EvaluationInputs(
+            datasets={"d1": paths["data"], "d2": paths["flat"]},
+            stage1=paths["stage1"],
+            stage2=paths["stage2"],
+            single_stage=paths["single_stage"],
+            single_stage_variants=(masked,),
+            answers=WorldAnswers(world),
+        )
+
+    with pytest.raises(InputError, match="no validation subjects"):
+        Evaluation(inputs(evaluated["world"]), settings)
+    world = tmp_path / "world"
+    shutil.copytree(evaluated["world"], world)
+    splits = json.loads((world / "answers" / "splits.json").read_text())
+    splits["d1"]["s01"] = "val"  # a training-split subject with OLAT rows, never a test subject
+    (world / "answers" / "splits.json").write_text(json.dumps(splits))
+    evaluation = Evaluation(inputs(world), settings)
+    choice = evaluation.results["baseline_choice"]
+    assert choice["subjects"] == ["s01"] and len(choice["candidates"]) == 2
+    scores = {run: entry["validation_psnr"] for run, entry in choice["candidates"].items()}
+    assert choice["chosen"] == max(scores, key=scores.get)
+    assert str(evaluation.inputs.single_stage) == choice["chosen"]
+    assert "masked loss" in choice["candidates"][str(masked)]["label"]
+
+
+def test_evaluate_command_takes_the_ablation_arms(evaluated, tmp_path):
+    """The command line of the demo's evaluate stage: arms by name, the main runs' fits only in Table 3b;
+    an arm whose stage 1 contradicts its name is refused in one line."""
+    from click.testing import CliRunner
+
+    from relightanyone.cli import cli
+
+    paths, root = evaluated["paths"], evaluated["paths"]["root"]
+    arm = {
+        name: [str(root / f"{name}-stage1"), str(root / f"{name}-stage2")]
+        for name in ("no-zl", "colour-matrix")
+    }
+    base = [
+        "evaluate",
+        "--world",
+        str(evaluated["world"]),
+        "--data",
+        f"d1={paths['data']}",
+        "--data",
+        f"d2={paths['flat']}",
+        "--stage1",
+        str(paths["stage1"]),
+        "--stage2",
+        str(paths["stage2"]),
+        "--fit-iterations",
+        "1",
+        "1",
+        "--max-views",
+        "2",
+        "--lights-subset",
+        "2",
+        "--quiet",
+    ]
+    wrong = CliRunner().invoke(
+        cli, [*base, "--ablation", "with-zl", *arm["no-zl"], "--out", str(tmp_path / "w")]
+    )
+    assert wrong.exit_code == 1 and "trained without" in wrong.output and "Traceback" not in wrong.output
+    args = [*base, "--ablation", "no-zl", *arm["no-zl"], "--ablation", "colour-matrix", *arm["colour-matrix"]]
+    result = CliRunner().invoke(cli, [*args, "--no-ablation-fits", "--out", str(tmp_path / "e")])
+    assert result.exit_code == 0, result.output
+    saved = json.loads((tmp_path / "e" / "evaluation.json").read_text())
+    assert set(saved["table3"]["mean"]) == {"with_lighting_code", "without_lighting_code", "colour_matrix"}
+    assert set(saved["table3_fitted"]["mean"]) == {"two_stage"}
+    assert saved["settings"]["unknown_lighting"] and saved["settings"]["monocular_single_image"]

@@ -194,3 +194,33 @@ def test_train_command_reports_missing_template(tmp_path):
         cli, ["train", "stage1", "--data", str(dataset), "--out", str(tmp_path / "r")]
     )
     assert result.exit_code != 0 and "template.obj" in result.output
+
+
+def test_no_lighting_code_trains_zero_codes_from_the_same_start(world, tmp_path):
+    """The ablation without z_l: codes stay exactly zero, every other weight starts where the normal run
+    starts, the run records it, the loaded run decodes alike under every dataset's code, and resuming
+    with lighting codes is refused."""
+    from relightanyone.model.train.run import decode, load_run
+
+    out = tmp_path / "no-zl"
+    args = ["train", "stage1", *[a for d in world for a in ("--data", str(d))], "--iterations", "4"]
+    result = CliRunner().invoke(cli, [*args, "--no-lighting-code", "--eval-views", "1", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    checkpoint = load_checkpoint(out / "checkpoint.pt")
+    assert checkpoint["lighting_code"] is False
+    assert json.loads((out / "run.json").read_text())["lighting_code"] is False
+    assert torch.count_nonzero(checkpoint["model"]["lighting_codes"]) == 0
+    data = Stage1Data(world, held_out_per_subject=1)
+    torch.manual_seed(0)
+    with_codes = build_model(tiny_stage1_preset(), data, (), data.template_path)
+    torch.manual_seed(0)
+    without = build_model(tiny_stage1_preset(), data, (), data.template_path, lighting_code=False)
+    assert not without.lighting_codes.requires_grad and torch.count_nonzero(with_codes.lighting_codes) > 0
+    for name, tensor in with_codes.state_dict().items():
+        if name != "lighting_codes":
+            assert torch.equal(tensor, without.state_dict()[name]), name
+    run = load_run(out)
+    assert not run.model.has_lighting_code
+    assert torch.equal(decode(run, 0, 0).colours, decode(run, 0, 1).colours)
+    resumed = CliRunner().invoke(cli, [*args[:-1], "5", "--eval-views", "1", "--out", str(out)])
+    assert resumed.exit_code != 0 and "lighting-code" in resumed.output

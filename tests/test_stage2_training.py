@@ -216,6 +216,56 @@ def test_cli_trains_stage2_and_explains_bad_input(olat_world, tmp_path):
     assert unknown.exit_code != 0 and "not trained on dataset 'other'" in unknown.output
 
 
+def test_single_stage_matches_a_two_stage_budget_with_either_loss(olat_world, tmp_path):
+    """--match-budget gives the baseline as many training views as stage 1 + stage 2 together; the loss
+    variant is recorded, changes the objective, and a run cannot resume with the other one."""
+    from relightanyone.model.train.budget import run_budget
+
+    dataset, run = olat_world
+    runner = CliRunner()
+    stage2 = tmp_path / "stage2"
+    base = ["train", "stage2", "--data", str(dataset)]
+    made = runner.invoke(cli, [*base, "--stage1", str(run), "--out", str(stage2), "--iterations", "3"])
+    assert made.exit_code == 0, made.output
+    out = tmp_path / "single"
+    single = [
+        *base,
+        "--single-stage",
+        "--single-stage-loss",
+        "masked",
+        "--batch-size",
+        "3",
+        "--out",
+        str(out),
+    ]
+    both = runner.invoke(cli, [*single, "--match-budget", str(run), str(stage2), "--iterations", "2"])
+    assert both.exit_code != 0 and "not both" in both.output
+    result = runner.invoke(cli, [*single, "--match-budget", str(run), str(stage2)])
+    assert result.exit_code == 0, result.output
+    views = run_budget(run)["samples"] + run_budget(stage2)["samples"]
+    budget = run_budget(out)
+    assert budget["iterations"] == -(-views // 3) and budget["samples"] >= views > budget["samples"] - 3
+    info = json.loads((out / "run.json").read_text())
+    assert info["single_stage_loss"] == "masked"
+    losses = {}
+    for variant in ("background", "masked"):
+        config = Stage2Config(
+            dataset,
+            tmp_path / variant,
+            tiny_stage2_preset(),
+            single_stage=True,
+            single_stage_loss=variant,
+            progress=False,
+            stage1_preset=tiny_stage1_preset(crop_size=SIZE),
+        )
+        torch.manual_seed(0)
+        trainer = Stage2Trainer(config)
+        losses[variant] = trainer.loss(trainer.batch(0), 0)[1]["l1"]
+    assert losses["background"] != losses["masked"]
+    resumed = runner.invoke(cli, [*base, "--single-stage", "--out", str(out), "--iterations", "1"])
+    assert resumed.exit_code != 0 and "another mode" in resumed.output
+
+
 @pytest.mark.parametrize("single_stage", [False, True], ids=["stage2", "single-stage"])
 def test_accumulated_micro_batches_give_the_batch_gradient(olat_world, tmp_path, single_stage):
     dataset, run = olat_world

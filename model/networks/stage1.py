@@ -10,6 +10,10 @@
 For the colour-alignment warm-up the lighting code is switched off (zeros) and the model carries one
 learnable 3×3 per dataset, applied to the rendered image of datasets flagged uncalibrated:
 ``predicted_dataset_rgb = C_d @ rendered_rgb``.
+
+A model built with ``lighting_code=False`` (the paper's ablation without z_l) has no lighting code at all:
+its codes are zeros that never train, so every consumer (stage 2, fitting, expansion) decodes it with
+z_l = 0 through the same code path.
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ class Stage1Model(nn.Module):
         subject_count: number of identity codes (one per ``<dataset>/<subject>``).
         dataset_count: number of lighting codes and colour matrices (one per dataset).
         uncalibrated: (dataset_count,) bool, datasets whose colour matrix is learned in the warm-up.
+        lighting_code: False for the ablation without lighting codes (z_l fixed at zero, not trained).
     """
 
     def __init__(
@@ -54,13 +59,19 @@ class Stage1Model(nn.Module):
         subject_count: int,
         dataset_count: int,
         uncalibrated: torch.Tensor | None = None,
+        lighting_code: bool = True,
     ) -> None:
         super().__init__()
         template_vertices, self.spacing = bind_template(preset, template_vertices, binding)
         self.preset = preset
         self.binding = binding
         self.identity_codes = nn.Parameter(torch.randn(subject_count, preset.z_id_dim) * CODE_INIT_STD)
-        self.lighting_codes = nn.Parameter(torch.randn(dataset_count, preset.z_l_dim) * CODE_INIT_STD)
+        # Drawn in both cases, so that a run without lighting codes starts from the same other weights.
+        lighting_codes = torch.randn(dataset_count, preset.z_l_dim) * CODE_INIT_STD
+        self.has_lighting_code = lighting_code
+        self.lighting_codes = nn.Parameter(
+            lighting_codes if lighting_code else torch.zeros_like(lighting_codes), requires_grad=lighting_code
+        )
         self.colour_matrices = nn.Parameter(torch.eye(3).repeat(dataset_count, 1, 1))
         flags = torch.zeros(dataset_count, dtype=torch.bool) if uncalibrated is None else uncalibrated.bool()
         self.register_buffer("uncalibrated", flags.clone())

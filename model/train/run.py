@@ -77,7 +77,12 @@ def load_run(run_dir: Path, device: torch.device | str = "cpu") -> Stage1Run:
     preset = Stage1Preset.from_json(checkpoint["preset"])
     template_vertices, binding = load_template_binding(run_dir / TEMPLATE_NAME, preset.uv_size)
     model = Stage1Model(
-        preset, template_vertices, binding, len(checkpoint["subjects"]), len(checkpoint["datasets"])
+        preset,
+        template_vertices,
+        binding,
+        len(checkpoint["subjects"]),
+        len(checkpoint["datasets"]),
+        lighting_code=checkpoint.get("lighting_code", True),
     )
     model.load_state_dict(checkpoint["model"])
     model.to(device).eval()

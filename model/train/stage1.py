@@ -73,6 +73,8 @@ class Stage1Config:
 
     warmup: the colour-alignment warm-up (lighting code off, a 3×3 learned for each ``uncalibrated``
     dataset, raw dataset colours); otherwise normal training with z_l and learned matrices applied on load.
+    lighting_code: False trains without lighting codes (the ablation of z_l): datasets share one colour
+    decoder input, aligned only by the learned matrices their loaders apply.
     """
 
     data: list[Path]
@@ -81,6 +83,7 @@ class Stage1Config:
     seed: int = 0
     uncalibrated: tuple[str, ...] = ()
     warmup: bool = False
+    lighting_code: bool = True
     resume: bool = True
     progress: bool = True
     evaluate: bool = True
@@ -138,16 +141,23 @@ def stage1_batch(
 
 
 def build_model(
-    preset: Stage1Preset, data: Stage1Data, uncalibrated: tuple[str, ...], template_path: Path
+    preset: Stage1Preset,
+    data: Stage1Data,
+    uncalibrated: tuple[str, ...],
+    template_path: Path,
+    lighting_code: bool = True,
 ) -> Stage1Model:
-    """The stage-1 model for ``data``'s subjects and datasets, bound to the template at the preset's UV size."""
+    """The stage-1 model for ``data``'s subjects and datasets, bound to the template at the preset's UV size
+    (``lighting_code`` False: without lighting codes)."""
 
     unknown = sorted(set(uncalibrated) - set(data.names))
     if unknown:
         raise InputError(f"--uncalibrated names {unknown} are not among the datasets {data.names}")
     template_vertices, binding = load_template_binding(template_path, preset.uv_size)
     flags = torch.tensor([name in uncalibrated for name in data.names])
-    return Stage1Model(preset, template_vertices, binding, len(data.subjects), len(data.names), flags)
+    return Stage1Model(
+        preset, template_vertices, binding, len(data.subjects), len(data.names), flags, lighting_code
+    )
 
 
 def average_gradients(model: torch.nn.Module, world_size: int) -> None:
@@ -182,9 +192,14 @@ def _check_resumable(
             f"({'preset fields ' + ', '.join(differing) if differing else 'subjects/datasets differ'}); "
             "use another --out folder or --no-resume"
         )
-    if checkpoint["warmup"] != config.warmup or checkpoint["seed"] != config.seed:
+    if (
+        checkpoint["warmup"] != config.warmup
+        or checkpoint["seed"] != config.seed
+        or checkpoint.get("lighting_code", True) != config.lighting_code
+    ):
         raise InputError(
-            f"{path}: the checkpoint is from a run with another seed or warm-up setting; use another --out"
+            f"{path}: the checkpoint is from a run with another seed, warm-up or lighting-code setting; "
+            "use another --out"
         )
 
 
@@ -210,7 +225,9 @@ def _train_stage1(config: Stage1Config, group: ProcessGroup) -> dict:
     out = Path(config.out)
     data = Stage1Data(config.data, preset.held_out_cameras, apply_learned_colour=not config.warmup)
     torch.manual_seed(config.seed)
-    model = build_model(preset, data, config.uncalibrated, data.template_path).to(group.device)
+    model = build_model(preset, data, config.uncalibrated, data.template_path, config.lighting_code).to(
+        group.device
+    )
     model.precision = check_precision(config.precision)
     if group.world_size > 1:  # every process starts from rank 0's weights
         for tensor in list(model.parameters()) + list(model.buffers()):
@@ -232,7 +249,8 @@ def _train_stage1(config: Stage1Config, group: ProcessGroup) -> dict:
         _write_json(out / RUN_INFO_NAME, _run_info(config, data, group))
         parameter_count = sum(p.numel() for p in model.parameters())
         print(
-            f"stage 1{' colour warm-up' if config.warmup else ''}: {len(data.subjects)} subjects in "
+            f"stage 1{' colour warm-up' if config.warmup else ''}"
+            f"{'' if config.lighting_code else ' without lighting codes'}: {len(data.subjects)} subjects in "
             f"{len(data.names)} datasets, {model.gaussian_count} Gaussians per subject, "
             f"{parameter_count / 1e6:.2f} M parameters, {group.world_size} process(es)"
         )
@@ -368,6 +386,7 @@ def _checkpoint_payload(
         "datasets": data.names,
         "uncalibrated": list(config.uncalibrated),
         "warmup": config.warmup,
+        "lighting_code": config.lighting_code,
         "seed": config.seed,
     }
 
@@ -386,6 +405,7 @@ def _run_info(config: Stage1Config, data: Stage1Data, group: ProcessGroup) -> di
             for v in views
         ),
         "uncalibrated": list(config.uncalibrated),
+        "lighting_code": config.lighting_code,
         "seed": config.seed,
         "processes": group.world_size,
         "template": TEMPLATE_NAME,

@@ -104,6 +104,7 @@ from relightanyone.render.shading import point_light_sh
 TRAIN_SPLIT = "train"
 PATTERN_STREAM = 2  # generator stream of the (full-on or OLAT, row) draws; crops use CROP_STREAM
 ARCHITECTURE_FIELDS = ("sh_order", "base_channels", "max_channels")
+SINGLE_STAGE_LOSSES = ("background", "masked")
 
 
 @dataclass
@@ -112,6 +113,9 @@ class Stage2Config:
 
     data: the normalized OLAT dataset folder. stage1_run: the frozen stage-1 run (stage-2 mode only).
     stage1_preset: sizes of the single-stage model (single-stage mode only).
+    single_stage_loss: the baseline's image loss, ``"background"`` (render and target composited over a
+    random background on the whole crop, as stage 1: coverage counts) or ``"masked"`` (L1 and SSIM inside
+    the mask only, as stage 2).
     """
 
     data: Path
@@ -120,6 +124,7 @@ class Stage2Config:
     stage1_run: Path | None = None
     single_stage: bool = False
     stage1_preset: Stage1Preset | None = None
+    single_stage_loss: str = "background"
     seed: int = 0
     resume: bool = True
     progress: bool = True
@@ -267,6 +272,10 @@ class Stage2Trainer:
     """Builds the model of either mode, draws batches, computes the loss, trains and checkpoints."""
 
     def __init__(self, config: Stage2Config) -> None:
+        if config.single_stage_loss not in SINGLE_STAGE_LOSSES:
+            raise InputError(
+                f"single-stage loss must be one of {', '.join(SINGLE_STAGE_LOSSES)}, got {config.single_stage_loss!r}"
+            )
         self.config = config
         self.preset = config.preset
         self.device = resolve_device(config.device)
@@ -429,7 +438,8 @@ class Stage2Trainer:
             dataclasses.replace(gaussians, colours=relit.colour), batch["K"], batch["w2c"], crop, crop
         )
         compared, image, mask = render, batch["image"], batch["mask"]
-        if self.config.single_stage:  # its geometry trains: coverage counts, as in stage 1
+        if self.config.single_stage and self.config.single_stage_loss == "background":
+            # Its geometry trains: coverage counts, as in stage 1.
             background = background_colours(self.config.seed, iteration, first_sample, render.shape[0])
             compared, image = composite_over_background(
                 render, alpha, image, mask, torch.from_numpy(background)
@@ -501,6 +511,7 @@ class Stage2Trainer:
         if (
             differing
             or checkpoint["single_stage"] != self.config.single_stage
+            or checkpoint.get("single_stage_loss", "background") != self.config.single_stage_loss
             or checkpoint["subjects"] != self.frames.subjects
         ):
             raise InputError(
@@ -578,6 +589,7 @@ class Stage2Trainer:
             "preset": self.preset.to_json(),
             "stage1_preset": self.stage1_preset.to_json(),
             "single_stage": self.config.single_stage,
+            "single_stage_loss": self.config.single_stage_loss,
             "subjects": self.frames.subjects,
             "dataset": self.frames.name,
             "seed": self.config.seed,
@@ -586,6 +598,7 @@ class Stage2Trainer:
     def _run_info(self) -> dict:
         return {
             "stage": "single-stage" if self.config.single_stage else "stage2",
+            "single_stage_loss": self.config.single_stage_loss if self.config.single_stage else None,
             "preset": self.preset.to_json(),
             "stage1_preset": self.stage1_preset.to_json(),
             "stage1_run": str(Path(self.config.stage1_run).resolve()) if self.config.stage1_run else None,

@@ -157,6 +157,31 @@ def tiny_stage2_preset(**changes):
     return get_stage2_preset("tiny").replace(**settings)
 
 
+def train_ablation_arms(paths: dict[str, Path], stage1_iterations: int = 6) -> dict[str, tuple[Path, Path]]:
+    """The lighting-code ablation's other arms on a world with ``flat`` (same data and budget as the main
+    runs): ``no-zl`` (stage 1 without lighting codes) and ``colour-matrix`` (the flat dataset aligned by a
+    learned 3x3 first, then no lighting codes). Returns arm -> (stage 1, stage 2)."""
+    from relightanyone.model.train.colour_warmup import align_colours
+
+    root = paths["root"]
+    preset = tiny_stage1_preset(iterations=stage1_iterations, crop_size=SIZE, held_out_cameras=0)
+    aligned = root / "aligned-3x3"
+    align_colours([paths["data"], paths["flat"]], ("flat",), preset.replace(warmup_iterations=3), aligned)
+    arms = {}
+    for arm, datasets in (
+        ("no-zl", [paths["data"], paths["flat"]]),
+        ("colour-matrix", [aligned / "olat", aligned / "flat"]),
+    ):
+        stage1, stage2 = root / f"{arm}-stage1", root / f"{arm}-stage2"
+        config = Stage1Config(datasets, stage1, preset, lighting_code=False, progress=False, evaluate=False)
+        train_stage1(config)
+        train_stage2(
+            Stage2Config(datasets[0], stage2, tiny_stage2_preset(), stage1_run=stage1, progress=False)
+        )
+        arms[arm] = (stage1, stage2)
+    return arms
+
+
 def build_sphere_world(
     root: Path, flat: bool = False, single_stage: bool = False, stage1_iterations: int = 6
 ) -> dict[str, Path]:
