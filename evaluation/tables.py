@@ -236,7 +236,6 @@ class Evaluation:
 
         self.inputs = inputs
         self.settings = settings
-        self.device = torch.device(settings.device)
         self.training_runs = training_runs(
             inputs.stage1, inputs.stage2, inputs.single_stage, list(inputs.datasets.values())
         )
@@ -251,6 +250,7 @@ class Evaluation:
                 f"no {settings.split} subjects in the evaluated datasets {sorted(inputs.datasets)}; "
                 f"the world's or the rows' splits give none (choose another --split)"
             )
+        self.device = torch.device(settings.device)
         self.model = load_relightable_model(inputs.stage1, inputs.stage2, self.device)
         self.single = None
         if inputs.single_stage is not None:
