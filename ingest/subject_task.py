@@ -30,6 +30,7 @@ from relightanyone.ingest.steps import (
     crop_box_around_points,
     project_points,
     undistort_crop_resize,
+    undistort_crop_resize_valid,
 )
 from relightanyone.ingest.tracking import (
     AlignmentError,
@@ -63,6 +64,7 @@ class SubjectTask:
     plan: SubjectPlan
     alignments: dict[int, FrameAlignment]
     failures: dict[int, str]
+    frame_pairing: str = ""  # how the tracking's timesteps pair with native frames (empty: shipped meshes)
     refused_views: dict[str, str] = field(default_factory=dict)  # item -> why a convention check refused it
 
 
@@ -110,14 +112,15 @@ def normalize_view(
     mesh: FrameMesh,
     out_size: int,
     margin: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int, int]]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int, int]]:
     """Steps 3-6 for one calibrated image.
 
     Args:
         image: ``(H, W, 3)`` float32 colour-calibrated linear RGB; alpha: ``(H, W)`` in [0, 1] or None.
         mesh: the canonical tracked mesh of the view's frame.
     Returns:
-        ``(image (S, S, 3) float32, mask (S, S) float32, K (3, 3), w2c (4, 4), crop box)``.
+        ``(image (S, S, 3) float32, mask (S, S) float32, valid (S, S) bool, K (3, 3), w2c (4, 4), crop
+        box)``; the mask is zero wherever ``valid`` is not (the zero padding of a crop past the image).
     """
 
     camera = view.camera
@@ -130,14 +133,14 @@ def normalize_view(
     w2c = w2c_to_canonical(camera.w2c, alignment.canonical_from_native)
     # The crop is taken from the undistorted image, whose pinhole camera is K itself.
     box = crop_box_around_points(project_points(mesh.crop_points, camera.K, w2c), (width, height), margin)
-    out, K_new = undistort_crop_resize(image, camera.K, camera.dist, box, out_size)
-    mask = mesh.silhouette.mask(K_new, w2c, out_size).astype(np.float32)
+    out, K_new, valid = undistort_crop_resize_valid(image, camera.K, camera.dist, box, out_size)
+    mask = (mesh.silhouette.mask(K_new, w2c, out_size) & valid).astype(np.float32)
     if alpha is not None:
         if alpha.shape != (height, width):
             raise ValueError(f"alpha map is {alpha.shape[1]}x{alpha.shape[0]}, image is {width}x{height}")
         alpha_out, _ = undistort_crop_resize(alpha.astype(np.float32), camera.K, camera.dist, box, out_size)
         mask *= np.clip(alpha_out.reshape(out_size, out_size), 0.0, 1.0)
-    return out, mask, K_new, w2c, box
+    return out, mask, valid, K_new, w2c, box
 
 
 def configure_task_threads(video_threads: int = 1) -> None:
@@ -208,7 +211,7 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
                 continue
             try:
                 image = apply_colour_calibration(image, view.colour)
-                out, mask, K, w2c, box = normalize_view(
+                out, mask, valid, K, w2c, box = normalize_view(
                     view,
                     image,
                     alpha,
@@ -237,7 +240,8 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
                 source=view.source,
                 source_sha256=sha256,
                 crop=box,
-                colour_matrix=view.colour.matrix,
+                colour_matrix=view.colour.applied_matrix(),
+                valid=valid,
             )
             part.add(row)
             seen.add(item)

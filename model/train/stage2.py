@@ -72,7 +72,13 @@ from relightanyone.model.train.losses import (
     weighted_sum,
 )
 from relightanyone.model.train.run import load_run
-from relightanyone.model.train.run_files import CHECKPOINT_NAME, METRICS_NAME, RUN_INFO_NAME
+from relightanyone.model.train.run_files import (
+    CHECKPOINT_NAME,
+    METRICS_NAME,
+    RUN_INFO_NAME,
+    TRAINED_VIEWS_KEY,
+    trained_views,
+)
 from relightanyone.model.train.sampling import (
     CROP_STREAM,
     background_colours,
@@ -181,6 +187,11 @@ class OlatFrames:
         if not self.full_on and not self.olat:
             raise InputError(f"{self.path}: no 'full' or 'olat-KKK' training rows")
 
+    def trained_views(self) -> dict[str, list[str]]:
+        """{``<dataset>/<subject>``: cameras} of every training row (full-on and OLAT)."""
+        subjects, cameras = self.rows.column("subject"), self.rows.column("camera")
+        return trained_views((f"{self.name}/{s}", c) for s, c in zip(subjects, cameras, strict=True))
+
     def draw(self, batch_size: int, full_on_fraction: float, seed: int, iteration: int) -> list[OlatView]:
         """The views of one iteration: full-on with probability ``full_on_fraction``, else OLAT (stateless)."""
         rng = iteration_generator(seed, iteration, PATTERN_STREAM)
@@ -203,7 +214,7 @@ class OlatFrames:
     def load_batch(
         self, views: list[OlatView], crop_size: int, seed: int, iteration: int
     ) -> dict[str, torch.Tensor]:
-        """image (B, 3, c, c), mask (B, 1, c, c), K (B, 3, 3), w2c (B, 4, 4), light_positions and
+        """image (B, 3, c, c), mask and valid (B, 1, c, c), K (B, 3, 3), w2c (B, 4, 4), light_positions and
         light_intensities (B, Lmax, 3), tracked (B, V, 3), has_mesh (B,), subject_index (B,)."""
         items = [
             random_crop(
@@ -223,6 +234,7 @@ class OlatFrames:
         return {
             "image": batch["image"],
             "mask": batch["mask"],
+            "valid": batch["valid"],
             "K": batch["K"].to(torch.float32),
             "w2c": batch["w2c"].to(torch.float32),
             "light_positions": light_positions,
@@ -395,7 +407,7 @@ class Stage2Trainer:
             compared, image = composite_over_background(
                 render, alpha, image, mask, torch.from_numpy(background)
             )
-            mask = torch.ones_like(mask)
+            mask = batch["valid"]  # the whole crop but the padding past the source image
         normal_lambda = annealed_weight(
             iteration, weights.normal_start, weights.normal_end, self.preset.normal_anneal_iterations
         )
@@ -530,6 +542,7 @@ class Stage2Trainer:
             "stage1_run": str(Path(self.config.stage1_run).resolve()) if self.config.stage1_run else None,
             "dataset": {"name": self.frames.name, "path": str(self.frames.path.resolve())},
             "subjects": self.frames.subjects,
+            TRAINED_VIEWS_KEY: self.frames.trained_views(),
             "head_centre": self.trainable.head_centre.tolist(),
             "lights": len(self.frames.rig),
             "frames": {"full_on": len(self.frames.full_on), "olat": len(self.frames.olat)},
