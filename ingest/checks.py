@@ -36,6 +36,7 @@ from relightanyone.ingest.records import SourceView
 CHECKS: dict[str, str] = {
     "rotation": "camera rotations are orthonormal with determinant +1",
     "principal-point": "principal points lie inside their images",
+    "surround": "the cameras surround the head: seen from it, they are spread over an angle",
     "in-front": "the tracked head is in front of every camera",
     "facing": "every camera faces the head: the head's centre projects inside its image",
     "projection": "the head projects inside each image at a plausible size",
@@ -52,6 +53,7 @@ FIT_RMS_MM = 25.0  # rigid fit of a frame's tracked mesh to the template (or can
 ROTATION_TOLERANCE = 1e-3  # largest entry of R Rᵀ - I
 PROJECTED_INSIDE = 0.5  # share of the projected head's bounding box that must lie inside the image
 PROJECTED_EXTENT = (0.03, 4.0)  # projected head extent / the image's larger side
+SURROUND_MIN_DEG = 10.0  # the largest angle between two cameras seen from the head's centre
 SUBJECT_SHARE = 0.5  # a failure on this share of a subject's views or frames is a dataset-level mistake
 EXPLAINED_SHARE = 0.9  # an alternative explains a failure when this share of the views then passes
 HEAD_POINTS = 200  # vertices used for the camera checks (evenly subsampled)
@@ -304,6 +306,50 @@ def explain_cameras(cases: list[CameraCase]) -> str | None:
                 "— give K in pixels of the image files",
             )
     return None if best is None else best[1]
+
+
+def camera_spread_deg(cases: list[CameraCase]) -> float:
+    """The largest angle (degrees) between the directions from the head's centre to two cameras."""
+    directions = []
+    for case in cases:
+        offset = -case.w2c[:3, :3].T @ case.w2c[:3, 3] - case.head.mean(axis=0)
+        length = float(np.linalg.norm(offset))
+        if length > 0:
+            directions.append(offset / length)
+    if len(directions) < 2:
+        return 180.0
+    cosines = np.stack(directions) @ np.stack(directions).T
+    return math.degrees(math.acos(float(np.clip(cosines.min(), -1.0, 1.0))))
+
+
+def surround_findings(cases: list[CameraCase], subject: str, accepted: tuple[str, ...]) -> list[Finding]:
+    """A rig whose cameras (one case each) all sit in one direction from the head, closer than
+    :data:`SURROUND_MIN_DEG`: the extrinsics are read in the wrong convention (a camera-to-world matrix
+    read as world-to-camera puts every camera of a rig aimed at the world's origin at one point)."""
+    cameras = list({c.camera: c for c in cases}.values())
+    if "surround" in accepted or len(cameras) < 3:
+        return []
+    spread = camera_spread_deg(cameras)
+    if spread >= SURROUND_MIN_DEG:
+        return []
+    cause = "check the extrinsics' convention and that the meshes are in the cameras' world"
+    for meaning, fix, change in CAMERA_ALTERNATIVES:
+        changed = [
+            CameraCase(c.items, c.camera, *change(c.K, c.w2c, c.width, c.height), c.width, c.height, c.head)
+            for c in cameras
+        ]
+        passed = _passing(changed, lambda K, w2c, w, h: (K, w2c))
+        if camera_spread_deg(changed) >= SURROUND_MIN_DEG and passed >= EXPLAINED_SHARE * len(cameras):
+            cause = f"{meaning} (changed so, they surround it and {passed}/{len(cameras)} see it) — {fix}"
+            break
+    return [
+        Finding(
+            "surround",
+            "dataset",
+            f"subject {subject}: seen from the head, the {len(cameras)} cameras lie within {spread:.1f} deg of "
+            f"one another: {cause}",
+        )
+    ]
 
 
 def camera_findings(cases: list[CameraCase], subject: str, accepted: tuple[str, ...]) -> list[Finding]:
@@ -767,7 +813,10 @@ def check_subject(task, template, accepted: tuple[str, ...]) -> list[Finding]:
     )
     findings += sizes
     if not sizes:  # with a head of the wrong size, where it projects says nothing more
-        findings += camera_findings(cases, plan.subject, accepted)
+        # A rig that does not surround the head explains whatever the views show.
+        findings += surround_findings(cases, plan.subject, accepted) or camera_findings(
+            cases, plan.subject, accepted
+        )
     return findings
 
 
