@@ -13,6 +13,7 @@ import click
 from relightanyone.cli_options import (
     EXISTING_FOLDER,
     FILE,
+    device_option,
     fit_iterations_option,
     out_option,
     quiet_option,
@@ -47,6 +48,14 @@ from relightanyone.cli_options import (
 )
 @out_option("Output folder.")
 @fit_iterations_option((100, 100), "Inversion and finetuning iterations of every fit.")
+@click.option(
+    "--split",
+    type=click.Choice(["test", "val"]),
+    default="test",
+    show_default=True,
+    help="Held-out split scored: test (the reported numbers) or val (model selection and tuning). "
+    "Subjects any run trained on are refused.",
+)
 @click.option(
     "--subjects",
     type=click.IntRange(min=0),
@@ -84,6 +93,7 @@ from relightanyone.cli_options import (
     help="Also copy evaluation.json here (e.g. bench/results/evaluation.json).",
 )
 @quiet_option()
+@device_option()
 def evaluate_command(
     world: Path,
     data: tuple[str, ...],
@@ -92,6 +102,7 @@ def evaluate_command(
     single_stage: Path | None,
     out: Path,
     fit_iterations: tuple[int, int],
+    split: str,
     subjects: int,
     max_views: int,
     lights_subset: int,
@@ -100,6 +111,7 @@ def evaluate_command(
     seed: int,
     json_copy: Path | None,
     quiet: bool,
+    device: str,
 ) -> None:
     """Fit held-out subjects and measure relighting against the synthetic world's answers.
 
@@ -109,6 +121,7 @@ def evaluate_command(
     from relightanyone.evaluation.run import run_evaluation, world_datasets
     from relightanyone.evaluation.tables import EvaluationInputs, EvaluationSettings
     from relightanyone.evaluation.truth import WorldAnswers
+    from relightanyone.model.device import resolve_device
 
     answers = WorldAnswers(world)
     inputs = EvaluationInputs(
@@ -125,12 +138,17 @@ def evaluate_command(
         lights_subset=lights_subset or None,
         envmaps=envmaps or None,
         subjects_per_dataset=subjects or None,
+        split=split,
         views_per_step=views_per_step,
         seed=seed,
         progress=not quiet,
+        device=str(resolve_device(device)),
     )
     results = run_evaluation(inputs, settings, out, json_copy)
-    click.echo(f"wrote {out / 'report.md'} and {out / 'evaluation.json'}")
+    click.echo(
+        f"wrote {out / 'report.md'} and {out / 'evaluation.json'} ({results['run_kind']}, "
+        f"protocol {results['protocol_sha256'][:12]})"
+    )
     for claim, value in results.get("goals", {}).items():
         click.echo(f"  {claim}: {'not evaluated' if value is None else ('yes' if value else 'NO')}")
 

@@ -40,6 +40,7 @@ from relightanyone.evaluation.cases import (
 )
 from relightanyone.evaluation.metrics import LpipsMetric, image_metrics, lpips_status
 from relightanyone.evaluation.single_stage import SingleStageFitter, load_single_stage_run
+from relightanyone.evaluation.splits import refuse_trained_subjects, runs_that_trained, training_runs
 from relightanyone.evaluation.truth import WorldAnswers
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import make_mesh_key
@@ -66,9 +67,11 @@ class EvaluationSettings:
     lights_subset: int | None = 16  # OLAT lights compared (evenly spread rig indices)
     envmaps: int | None = None  # environment maps compared (all when None)
     subjects_per_dataset: int | None = 1  # held-out subjects per dataset (all when None)
+    split: str = "test"  # the held-out split scored: "test" (reported numbers) or "val" (model selection)
     views_per_step: int = 4
     seed: int = 0
     progress: bool = True
+    device: str = "cpu"  # torch device of the fits and renders; scores are computed on the CPU
 
 
 @dataclass
@@ -94,6 +97,7 @@ class Comparison:
     def add(
         self, label: str, prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, lpips
     ) -> None:
+        prediction = prediction.cpu()  # renders come from the fit's device; the truth is on the CPU
         for name, values in image_metrics(prediction, truth, mask, lpips).items():
             self.scores.setdefault(name, []).extend(float(v) for v in values)
         self.examples.append((label, prediction[0].numpy(), truth[0].numpy(), mask[0, 0].numpy()))
@@ -136,14 +140,16 @@ def first_frame_rows(rows: NormalizedTorchDataset) -> dict[int, str]:
     }
 
 
-def test_subjects(inputs: EvaluationInputs, world_name: str, limit: int | None) -> list[str]:
-    """Held-out subjects: the world's splits when answers are given, else the rows' "test" split."""
+def test_subjects(
+    inputs: EvaluationInputs, world_name: str, limit: int | None, split: str = "test"
+) -> list[str]:
+    """Held-out subjects of ``split``: the world's splits when answers are given, else the rows' split."""
 
     dataset = NormalizedDataset(inputs.datasets[world_name])
     if inputs.answers is not None and world_name in inputs.answers.splits:
-        names = [s for s in inputs.answers.test_subjects(world_name) if s in dataset.subjects]
+        names = [s for s in inputs.answers.subjects_in(world_name, split) if s in dataset.subjects]
     else:
-        names = sorted(set(NormalizedTorchDataset(dataset, splits="test").column("subject")))
+        names = sorted(set(NormalizedTorchDataset(dataset, splits=split).column("subject")))
     return names if limit is None else names[:limit]
 
 
@@ -189,25 +195,28 @@ def render_weighted_rig(avatar, cameras, cases: list[LightCase]) -> torch.Tensor
     """
     lightings = []
     for case in cases:
-        weights = torch.as_tensor(case.weights, dtype=torch.float32)
-        lightings.append(PointLights(case.basis.positions, case.basis.intensities.float() * weights))
+        weights = torch.as_tensor(case.weights, dtype=torch.float32, device=case.basis.intensities.device)
+        weighted = PointLights(case.basis.positions, case.basis.intensities.float() * weights)
+        lightings.append(weighted.to(cameras.w2c.device))
     return render_lightings(avatar, cameras, lightings)
 
 
 def compare(avatar, cases: list[LightCase], lpips) -> Comparison:
-    """Render every case (grouped by camera set: one batched render per group) and score it."""
+    """Render every case (grouped by camera set: one batched render per group, on the avatar's device)
+    and score it."""
+    device = avatar.means.device
     comparison = Comparison()
     groups: dict[tuple[str, ...], list[LightCase]] = {}
     for case in cases:
         groups.setdefault(tuple(v.camera for v in case.views), []).append(case)
     predictions: dict[int, torch.Tensor] = {}
     for group in groups.values():
-        cameras = view_cameras(group[0].views)
+        cameras = view_cameras(group[0].views).to(device)
         olat = [c for c in group if c.light is not None]
         if olat:
             lights = PointLights(
                 torch.cat([c.light.positions for c in olat]), torch.cat([c.light.intensities for c in olat])
-            )
+            ).to(device)
             for case, image in zip(olat, render_point_lights(avatar, cameras, lights), strict=True):
                 predictions[id(case)] = image
         relit = [c for c in group if c.light is None]
@@ -227,10 +236,25 @@ class Evaluation:
 
         self.inputs = inputs
         self.settings = settings
-        self.model = load_relightable_model(inputs.stage1, inputs.stage2)
+        self.training_runs = training_runs(
+            inputs.stage1, inputs.stage2, inputs.single_stage, list(inputs.datasets.values())
+        )
+        held_out = [
+            f"{NormalizedDataset(path).name}/{subject}"
+            for world_name, path in sorted(inputs.datasets.items())
+            for subject in self.held_out_subjects(world_name)
+        ]
+        refuse_trained_subjects(settings.split, held_out, self.training_runs)
+        if not held_out:
+            raise InputError(
+                f"no {settings.split} subjects in the evaluated datasets {sorted(inputs.datasets)}; "
+                f"the world's or the rows' splits give none (choose another --split)"
+            )
+        self.device = torch.device(settings.device)
+        self.model = load_relightable_model(inputs.stage1, inputs.stage2, self.device)
         self.single = None
         if inputs.single_stage is not None:
-            self.single = load_single_stage_run(inputs.single_stage)
+            self.single = load_single_stage_run(inputs.single_stage, self.device)
         available, reason = lpips_status()
         self.lpips = LpipsMetric() if available else None
         self.lpips_note = reason
@@ -267,6 +291,7 @@ class Evaluation:
 
         views = load_fit_views(self.inputs.datasets[world_name], subject, cameras=cameras)
         self.inputs_images.setdefault(f"{world_name}/{subject}", views.images[0].permute(1, 2, 0).numpy())
+        views = views.to(self.device)
         torch.manual_seed(self.settings.seed)
         start = time.perf_counter()
         if single:
@@ -347,7 +372,7 @@ class Evaluation:
     def table1_and_2(self) -> None:
         world_name = self.olat_world
         table1, table2 = {}, {}
-        for subject in test_subjects(self.inputs, world_name, self.settings.subjects_per_dataset):
+        for subject in self.held_out_subjects(world_name):
             key = f"{world_name}/{subject}"
             cameras, frontal = subject_cameras(
                 self.inputs.datasets[world_name], subject, self.settings.max_views
@@ -430,7 +455,9 @@ class Evaluation:
                 )
                 tracked = dataset.meshes().get(make_mesh_key(subject, frame))
                 tracked = (
-                    None if tracked is None else torch.as_tensor(np.asarray(tracked), dtype=torch.float32)
+                    None
+                    if tracked is None
+                    else torch.as_tensor(np.asarray(tracked), dtype=torch.float32, device=self.device)
                 )
                 self.inputs_images.setdefault(f"{world_name}/{subject}", self._first_image(path, subject))
                 decoded[f"{world_name}/{subject}"] = self._ablation_entry(
@@ -440,7 +467,7 @@ class Evaluation:
                     decoded_avatar(self.model, index, tracked, {}),
                     decoded_avatar(without, index, tracked, {}),
                 )
-            for subject in test_subjects(self.inputs, world_name, self.settings.subjects_per_dataset):
+            for subject in self.held_out_subjects(world_name):
                 cameras, _ = subject_cameras(path, subject, self.settings.max_views)
                 fitted[f"{world_name}/{subject}"] = self._ablation_entry(
                     world_name,
@@ -478,26 +505,14 @@ class Evaluation:
 
         return list(load_checkpoint(Path(self.inputs.stage1) / CHECKPOINT_NAME)["subjects"])
 
-    def seen_in_training(self, world_name: str, subject: str) -> list[str]:
-        """Runs whose training subjects include this one (then it is not held out; the report says so)."""
-        import json
+    def held_out_subjects(self, world_name: str) -> list[str]:
+        """The evaluated subjects of the settings' held-out split in one world dataset."""
+        return test_subjects(self.inputs, world_name, self.settings.subjects_per_dataset, self.settings.split)
 
-        name = f"{NormalizedDataset(self.inputs.datasets[world_name]).name}/{subject}"
-        runs = {
-            "stage 1": self.inputs.stage1,
-            "stage 2": self.inputs.stage2,
-            "single-stage": self.inputs.single_stage,
-        }
-        seen = []
-        for label, run in runs.items():
-            info_path = None if run is None else Path(run) / RUN_INFO_NAME
-            if info_path is not None and info_path.is_file():
-                info = json.loads(info_path.read_text())
-                # A stage-2 run lists every stage-1 subject (its code order) but trains on one dataset.
-                trained_on = info.get("dataset", {}).get("name") if info.get("stage") == "stage2" else None
-                if name in info.get("subjects", []) and trained_on in (None, name.split("/", 1)[0]):
-                    seen.append(label)
-        return seen
+    def seen_in_training(self, world_name: str, subject: str) -> list[str]:
+        """Labels of the runs that trained on this subject (Table 3's decoded training subjects)."""
+        key = f"{NormalizedDataset(self.inputs.datasets[world_name]).name}/{subject}"
+        return [run.label for run in runs_that_trained(key, self.training_runs)]
 
     def _stage1_dataset_names(self) -> list[str]:
         import json

@@ -38,6 +38,7 @@ LAYER_CLI_MODULES = (
 COMMAND_ORDER = (
     "synth",
     "synth-preview",
+    "doctor",
     "ingest",
     "validate",
     "inspect",
@@ -48,6 +49,7 @@ COMMAND_ORDER = (
     "fit",
     "relight",
     "export",
+    "plan",
     "expand",
     "evaluate",
     "report",

@@ -20,7 +20,6 @@ from relightanyone.model.train.losses import (
     ssim_loss,
     vertex_l2,
 )
-from relightanyone.model.train.memory import estimate_training_memory
 from relightanyone.model.train.sampling import (
     background_colours,
     balanced_batch,
@@ -156,7 +155,17 @@ def test_held_out_cameras_are_spread_and_never_all():
     aside = held_out_cameras(cameras, 2)
     assert len(aside) == 2 and aside <= set(cameras)
     assert held_out_cameras(["a"], 3) == set()
-    assert len(held_out_cameras(["a", "b"], 5)) == 1
+    assert held_out_cameras(["a", "b", "c"], 5) == set()
+
+
+@pytest.mark.parametrize("cameras", [4, 8, 12, 16, 40, 80])
+def test_at_least_three_quarters_of_a_subjects_cameras_train(cameras):
+    """The paper preset holds out 8 cameras per subject; an 8-camera rig still trains from 6 of them."""
+    names = [f"cam{i:02d}" for i in range(cameras)]
+    for requested in (1, 2, 4, 8, 100):
+        aside = held_out_cameras(names, requested)
+        assert cameras - len(aside) >= 0.75 * cameras
+        assert len(aside) == min(requested, cameras // 4)
 
 
 def test_colour_cast_error_is_zero_for_the_true_cast_and_gain_free():
@@ -170,11 +179,3 @@ def test_colour_cast_error_is_zero_for_the_true_cast_and_gain_free():
     assert np.allclose(correction_from_render_matrix(cast) @ cast, np.eye(3))
     with pytest.raises(ValueError, match="singular"):
         correction_from_render_matrix(np.zeros((3, 3)))
-
-
-def test_memory_estimate_grows_with_the_preset():
-    tiny = estimate_training_memory(get_preset("tiny"), 1_000_000, 3000)
-    paper = estimate_training_memory(get_preset("paper"), 200_000_000, 700_000)
-    assert tiny["total"] == sum(v for k, v in tiny.items() if k != "total")
-    assert paper["total"] > 10 * tiny["total"]
-    assert paper["optimizer_state"] == 2 * 200_000_000 * 4

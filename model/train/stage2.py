@@ -23,6 +23,7 @@ Run folder: ``run.json``, ``checkpoint.pt`` (atomic, resumable), ``metrics.json`
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import shutil
@@ -36,9 +37,17 @@ import torch
 from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import LIGHTS_NAME, TEMPLATE_NAME, make_mesh_key
-from relightanyone.format.torch_dataset import LEARNED, NormalizedTorchDataset, collate_rows, image_hwc
+from relightanyone.format.torch_dataset import (
+    LEARNED,
+    NormalizedTorchDataset,
+    collate_rows,
+    image_hwc,
+    iteration_loader,
+)
 from relightanyone.locking import output_lock
+from relightanyone.model.device import loader_workers, resolve_device
 from relightanyone.model.networks.gaussians import load_template_binding
+from relightanyone.model.networks.precision import check_precision
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
 from relightanyone.model.networks.reflectance import (
     FULL_ON_PATTERN,
@@ -63,6 +72,8 @@ from relightanyone.model.train.checkpoint import (
     save_checkpoint,
 )
 from relightanyone.model.train.losses import (
+    as_floats,
+    batch_means,
     composite_over_background,
     geometry_terms,
     geometry_weights,
@@ -72,7 +83,13 @@ from relightanyone.model.train.losses import (
     weighted_sum,
 )
 from relightanyone.model.train.run import load_run
-from relightanyone.model.train.run_files import CHECKPOINT_NAME, METRICS_NAME, RUN_INFO_NAME
+from relightanyone.model.train.run_files import (
+    CHECKPOINT_NAME,
+    METRICS_NAME,
+    RUN_INFO_NAME,
+    TRAINED_VIEWS_KEY,
+    trained_views,
+)
 from relightanyone.model.train.sampling import (
     CROP_STREAM,
     background_colours,
@@ -106,6 +123,11 @@ class Stage2Config:
     seed: int = 0
     resume: bool = True
     progress: bool = True
+    device: str = "auto"  # a --device value: auto, cpu, cuda, cuda:1, ...
+    precision: str = "fp32"  # fp32, or bf16 for the trained conv networks (networks.precision)
+    checkpoint_maps: bool = False  # recompute the trained networks' map activations in the backward pass
+    loader_workers: int | None = None  # batch loader processes (None: device.loader_workers' default)
+    accumulation: int = 1  # micro-batches per step: the batch's gradient, accumulated in parts
     extra_info: dict = field(default_factory=dict)
 
 
@@ -181,6 +203,11 @@ class OlatFrames:
         if not self.full_on and not self.olat:
             raise InputError(f"{self.path}: no 'full' or 'olat-KKK' training rows")
 
+    def trained_views(self) -> dict[str, list[str]]:
+        """{``<dataset>/<subject>``: cameras} of every training row (full-on and OLAT)."""
+        subjects, cameras = self.rows.column("subject"), self.rows.column("camera")
+        return trained_views((f"{self.name}/{s}", c) for s, c in zip(subjects, cameras, strict=True))
+
     def draw(self, batch_size: int, full_on_fraction: float, seed: int, iteration: int) -> list[OlatView]:
         """The views of one iteration: full-on with probability ``full_on_fraction``, else OLAT (stateless)."""
         rng = iteration_generator(seed, iteration, PATTERN_STREAM)
@@ -203,7 +230,7 @@ class OlatFrames:
     def load_batch(
         self, views: list[OlatView], crop_size: int, seed: int, iteration: int
     ) -> dict[str, torch.Tensor]:
-        """image (B, 3, c, c), mask (B, 1, c, c), K (B, 3, 3), w2c (B, 4, 4), light_positions and
+        """image (B, 3, c, c), mask and valid (B, 1, c, c), K (B, 3, 3), w2c (B, 4, 4), light_positions and
         light_intensities (B, Lmax, 3), tracked (B, V, 3), has_mesh (B,), subject_index (B,)."""
         items = [
             random_crop(
@@ -223,6 +250,7 @@ class OlatFrames:
         return {
             "image": batch["image"],
             "mask": batch["mask"],
+            "valid": batch["valid"],
             "K": batch["K"].to(torch.float32),
             "w2c": batch["w2c"].to(torch.float32),
             "light_positions": light_positions,
@@ -241,12 +269,14 @@ class Stage2Trainer:
     def __init__(self, config: Stage2Config) -> None:
         self.config = config
         self.preset = config.preset
-        self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        self.device = resolve_device(config.device)
         torch.manual_seed(config.seed)
         if config.single_stage:
             self._build_single_stage()
         else:
             self._build_stage2()
+        self.trainable.precision = check_precision(config.precision)
+        self.trainable.checkpoint_maps = config.checkpoint_maps
         self.optimizer = torch.optim.Adam(self.trainable.parameters(), lr=self.preset.learning_rate)
         self.start = 0
 
@@ -343,12 +373,20 @@ class Stage2Trainer:
             factor = factor / max(len(self.frames.rig), 1)
         return (mean_colour / factor).clamp(min=1e-6)
 
-    def batch(self, iteration: int) -> dict[str, torch.Tensor]:
-        views = self.frames.draw(
-            self.preset.batch_size, self.preset.full_on_fraction, self.config.seed, iteration
+    def make_batch(self) -> functools.partial:
+        """The host-side batch of an iteration (:func:`olat_batch`) as a picklable function of it."""
+        preset = self.preset
+        return functools.partial(
+            olat_batch,
+            self.frames,
+            preset.batch_size,
+            preset.full_on_fraction,
+            preset.crop_size,
+            self.config.seed,
         )
-        loaded = self.frames.load_batch(views, self.preset.crop_size, self.config.seed, iteration)
-        return {k: v.to(self.device) for k, v in loaded.items()}
+
+    def batch(self, iteration: int) -> dict[str, torch.Tensor]:
+        return {k: v.to(self.device) for k, v in self.make_batch()(iteration).items()}
 
     def decode(self, batch: dict[str, torch.Tensor]):
         """(vertices (B, V, 3), Gaussians, RelightParams, camera positions (B, 3)) of a batch."""
@@ -369,9 +407,10 @@ class Stage2Trainer:
         )
 
     def loss(
-        self, batch: dict[str, torch.Tensor], iteration: int
-    ) -> tuple[torch.Tensor, dict[str, float], torch.Tensor]:
-        """Total loss (mean over samples), its unweighted terms (batch means, plus weights and ``total``), the render."""
+        self, batch: dict[str, torch.Tensor], iteration: int, first_sample: int = 0
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor | float], torch.Tensor]:
+        """Total loss (mean over samples), its unweighted terms (batch means as detached 0-d tensors, read
+        only when logged; plus the weights and ``total``), the render."""
 
         weights = self.preset.loss
         vertices, gaussians, params, cameras = self.decode(batch)
@@ -391,11 +430,11 @@ class Stage2Trainer:
         )
         compared, image, mask = render, batch["image"], batch["mask"]
         if self.config.single_stage:  # its geometry trains: coverage counts, as in stage 1
-            background = background_colours(self.config.seed, iteration, 0, render.shape[0])
+            background = background_colours(self.config.seed, iteration, first_sample, render.shape[0])
             compared, image = composite_over_background(
                 render, alpha, image, mask, torch.from_numpy(background)
             )
-            mask = torch.ones_like(mask)
+            mask = batch["valid"]  # the whole crop but the padding past the source image
         normal_lambda = annealed_weight(
             iteration, weights.normal_start, weights.normal_end, self.preset.normal_anneal_iterations
         )
@@ -433,9 +472,24 @@ class Stage2Trainer:
             offset_lambda = offset_weight(iteration, geometry, self.stage1_preset.offset_anneal_iterations)
             per_sample = weighted_sum(terms, geometry_weights(geometry, offset_lambda), per_sample)
         total = per_sample.mean()
-        logged.update({name: float(value.detach().mean()) for name, value in terms.items()})
-        logged["total"] = float(total.detach())
+        logged.update(batch_means(terms))
+        logged["total"] = total.detach()
         return total, logged, render
+
+    def accumulate(self, batch: dict[str, torch.Tensor], iteration: int) -> dict[str, torch.Tensor | float]:
+        """Back-propagate the batch's loss in ``config.accumulation`` micro-batches (each loss weighted by its
+        share of the samples, so the summed gradient is the whole batch's); returns the batch's terms."""
+        size = batch["image"].shape[0]
+        parts = max(1, min(self.config.accumulation, size))
+        bounds = [round(size * k / parts) for k in range(parts + 1)]
+        terms: dict[str, torch.Tensor | float] = {}
+        for begin, end in zip(bounds[:-1], bounds[1:], strict=True):
+            share = (end - begin) / size
+            total, part_terms, _ = self.loss({k: v[begin:end] for k, v in batch.items()}, iteration, begin)
+            (total * share).backward()
+            for name, value in part_terms.items():
+                terms[name] = value if name.endswith("_lambda") else terms.get(name, 0.0) + value * share
+        return terms
 
     def resume_if_possible(self) -> None:
         path = Path(self.config.out) / CHECKPOINT_NAME
@@ -477,33 +531,40 @@ class Stage2Trainer:
             desc=mode,
             unit="it",
         )
-        history: list[dict[str, float]] = []
+        first = last = None
+        steps = 0
         seconds = 0.0
+        on_gpu = self.device.type == "cuda"
+        workers = loader_workers(self.device, self.config.loader_workers)
+        loader = iteration_loader(self.make_batch(), self.start, self.preset.iterations, workers, on_gpu)
+        batches = iter(loader)
         for iteration in range(self.start, self.preset.iterations):
             began = time.perf_counter()
-            total, terms, _ = self.loss(self.batch(iteration), iteration)
+            batch = {k: v.to(self.device, non_blocking=on_gpu) for k, v in next(batches).items()}
             self.optimizer.zero_grad(set_to_none=True)
-            total.backward()
+            terms = self.accumulate(batch, iteration)
             self.optimizer.step()
             seconds += time.perf_counter() - began
-            history.append(terms)
+            first, last, steps = first or terms, terms, steps + 1
             done = iteration + 1
             progress.update(1)
-            progress.set_postfix({k: f"{terms[k]:.4g}" for k in ("total", "l1", "ssim")})
+            # Loss values are read back from the device only every log_every steps.
             if done % self.preset.log_every == 0 or done == self.preset.iterations:
-                for name, value in terms.items():
+                logged = as_floats(terms)
+                progress.set_postfix({k: f"{logged[k]:.4g}" for k in ("total", "l1", "ssim")})
+                for name, value in logged.items():
                     writer.add_scalar(f"loss/{name}", value, done)
             if done % self.preset.checkpoint_every == 0 or done == self.preset.iterations:
                 save_checkpoint(out / CHECKPOINT_NAME, self._checkpoint(done))
         progress.close()
+        del batches, loader  # stops the loader's worker processes
         writer.close()
-        steps = len(history)
         metrics = {
             "mode": mode,
             "iterations": self.preset.iterations,
             "seconds_per_iteration": seconds / steps if steps else None,
-            "first_losses": history[0] if history else None,
-            "last_losses": history[-1] if history else None,
+            "first_losses": as_floats(first) if first else None,
+            "last_losses": as_floats(last) if last else None,
         }
         _write_json(out / METRICS_NAME, metrics)
         return metrics
@@ -530,6 +591,7 @@ class Stage2Trainer:
             "stage1_run": str(Path(self.config.stage1_run).resolve()) if self.config.stage1_run else None,
             "dataset": {"name": self.frames.name, "path": str(self.frames.path.resolve())},
             "subjects": self.frames.subjects,
+            TRAINED_VIEWS_KEY: self.frames.trained_views(),
             "head_centre": self.trainable.head_centre.tolist(),
             "lights": len(self.frames.rig),
             "frames": {"full_on": len(self.frames.full_on), "olat": len(self.frames.olat)},
@@ -537,6 +599,15 @@ class Stage2Trainer:
             "template": TEMPLATE_NAME,
             **self.config.extra_info,
         }
+
+
+def olat_batch(
+    frames: OlatFrames, batch_size: int, full_on_fraction: float, crop_size: int, seed: int, iteration: int
+) -> dict[str, torch.Tensor]:
+    """The batch of ``iteration``, on the host: views drawn (:meth:`OlatFrames.draw`) and loaded
+    (:meth:`OlatFrames.load_batch`); a function of the iteration alone."""
+    views = frames.draw(batch_size, full_on_fraction, seed, iteration)
+    return frames.load_batch(views, crop_size, seed, iteration)
 
 
 def train_stage2(config: Stage2Config) -> dict:

@@ -4,10 +4,12 @@ Stage-1 and stage-2 training, the single-stage baseline, fitting and evaluation 
 through :class:`NormalizedTorchDataset`. Each item is a dict::
 
     image          (3, H, W) float32, scene-linear, the colour matrix applied (``rgb = M @ rgb``) when given
-    mask           (1, H, W) float32 in [0, 1]
+    mask           (1, H, W) float32 in [0, 1], zero wherever ``valid`` is
+    valid          (1, H, W) float32, 1 where the pixel comes from the source image, 0 where it reaches the
+                   zero padding past the source's edge: losses and metrics weigh pixels by it
     K              (3, 3) float64, pixels of the stored image
     w2c            (4, 4) float64, OpenCV world-to-camera
-    colour_matrix  (3, 3) float32, the matrix the dataset was already normalized with at ingest
+    colour_matrix  (3, 4) float32, the correction ingest already applied (``rgb = M[:, :3] @ src + M[:, 3]``)
     index          int, the item's position in this dataset
     key, dataset, subject, camera, pattern, split: str;  frame, width, height: int
 
@@ -18,6 +20,9 @@ before rounding it to float32 once. :func:`collate_rows` stacks items into a bat
 A row is fetched by key from the memory-mapped shards (O(1) in the number of rows); the selection
 (filters, keys) is made once, on the small index. Shard memory maps are opened lazily in each process
 (the reader drops them on pickling), so the dataset works with ``DataLoader(num_workers > 0)``.
+
+The trainers read their batches through :func:`iteration_loader`: a ``DataLoader`` whose item is the batch
+of one iteration (:class:`IterationBatches`), made from these rows by worker processes ahead of the step.
 """
 
 from __future__ import annotations
@@ -107,9 +112,12 @@ class NormalizedTorchDataset(torch.utils.data.Dataset):
             )
         if self.colour_matrix is not None:
             image = image @ self.colour_matrix.T.astype(np.float32)
+        valid = row.valid_pixels()
         return {
             "image": torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32)),
-            "mask": torch.from_numpy(mask)[None],
+            # Masks exclude padding by the format's rule; applied again so no reader can count it.
+            "mask": torch.from_numpy(mask * valid)[None],
+            "valid": torch.from_numpy(valid.astype(np.float32))[None],
             "K": torch.from_numpy(row.K),
             "w2c": torch.from_numpy(row.w2c),
             "colour_matrix": torch.from_numpy(row.colour_matrix.astype(np.float32)),
@@ -149,3 +157,41 @@ def collate_rows(items: Sequence[dict[str, Any]]) -> dict[str, Any]:
         else:
             batch[name] = values
     return batch
+
+
+class IterationBatches(torch.utils.data.Dataset):
+    """Training batches by iteration: item ``i`` is ``make_batch(start + i)``, for ``start <= iteration < stop``.
+
+    A trainer's batch is a function of its iteration alone (its samplers are stateless and read rows
+    through :class:`NormalizedTorchDataset`), so a :func:`iteration_loader` with worker processes yields
+    exactly what a synchronous loop would, just earlier. ``make_batch`` must pickle (workers get a copy).
+    """
+
+    def __init__(self, make_batch, start: int, stop: int) -> None:
+        self.make_batch, self.start, self.stop = make_batch, int(start), int(stop)
+
+    def __len__(self) -> int:
+        return max(self.stop - self.start, 0)
+
+    def __getitem__(self, index: int) -> Any:
+        if not 0 <= index < len(self):
+            raise IndexError(index)
+        return self.make_batch(self.start + index)
+
+
+def iteration_loader(
+    make_batch, start: int, stop: int, workers: int = 0, pin_memory: bool = False, prefetch: int = 2
+) -> torch.utils.data.DataLoader:
+    """A ``DataLoader`` over :class:`IterationBatches`, in iteration order: ``workers`` processes make the
+    next batches while the current one trains (``prefetch`` batches each, workers kept between epochs);
+    ``pin_memory`` (for CUDA) puts them in page-locked memory so the copy to the GPU can overlap. With no
+    workers the batches are made in the training process, when asked for."""
+    return torch.utils.data.DataLoader(
+        IterationBatches(make_batch, start, stop),
+        batch_size=None,
+        shuffle=False,
+        num_workers=workers,
+        pin_memory=pin_memory,
+        prefetch_factor=prefetch if workers > 0 else None,
+        persistent_workers=workers > 0,
+    )
