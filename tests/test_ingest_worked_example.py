@@ -69,6 +69,8 @@ def test_worked_example_ingests_validates_and_inspects(worked_example, monkeypat
         assert result.exit_code == 0, f"{' '.join(command)}:\n{result.output}"
         outputs.append(result.output)
 
+    assert "convention checks: all passed" in outputs[0]
+    assert "4 rows written, 0 quarantined" in outputs[0]
     dataset = NormalizedDataset(folder / "datasets" / "mylab")
     assert len(dataset.keys) == 4  # one row per camera, as the page says
     for key in dataset.keys:
