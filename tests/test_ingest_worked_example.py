@@ -13,11 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 from click.testing import CliRunner
 from PIL import Image
 
 from relightanyone.cli import cli
 from relightanyone.format.reader import NormalizedDataset
+from relightanyone.render.mesh import read_obj
 
 REPO = Path(__file__).resolve().parents[1]
 SECTION = "## Your own capture"
@@ -84,3 +86,12 @@ def test_worked_example_ingests_validates_and_inspects(worked_example, monkeypat
     assert outputs[1].rstrip().endswith("OK")
     for picture in ("sheet.png", "overlay.png"):
         assert np.asarray(Image.open(folder / picture)).ndim == 3
+
+
+def test_obj_loading_advice_holds_for_ava256_topology(real_fixtures):
+    """The page's OBJ advice on Ava-256's real ``face_topology.obj``: trimesh's default load merges it to
+    5,779 vertices; the toolkit's reader and the recommended trimesh call keep all 7,306."""
+    path = real_fixtures / "ava-256" / "face_topology.obj"
+    assert len(trimesh.load(path, force="mesh").vertices) == 5779
+    kept = trimesh.load(path, process=False, maintain_order=True, force="mesh")
+    assert len(kept.vertices) == len(read_obj(path)[0]) == 7306
