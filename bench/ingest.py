@@ -26,7 +26,8 @@ Measures, in one run on the same images:
   go when images are as large as real ones.
 
 Usage: ``python bench/ingest.py [--world DIR] [--full-size-world DIR] [--out bench/results/ingest.json]``;
-the worlds are generated (Ava-256 only) when absent.
+the worlds are generated (Ava-256 only) when absent. ``--full-size-only small|paper`` measures only the
+full-size world at that preset and prints it (nothing is written).
 """
 
 from __future__ import annotations
@@ -124,14 +125,14 @@ def mask_methods(world: Path, sizes=(128, 512, 1024), repeats: int = 5) -> dict:
     return {"faces": int(template.faces.shape[0]), "sizes": results}
 
 
-def full_size(world: Path) -> dict:
-    """Bare loop and warm 1-worker ingest of the full-size world at each of FULL_SIZE_PRESETS."""
+def full_size(world: Path, presets: tuple[str, ...] = FULL_SIZE_PRESETS) -> dict:
+    """Bare loop and warm 1-worker ingest of the full-size world at each of ``presets``."""
     from relightanyone.ingest.runner import PRESET_SIZES
 
     ensure_full_size_world(world)
     plan = make_plan(world)
     runs = {}
-    for preset in FULL_SIZE_PRESETS:
+    for preset in presets:
         bare = bare_loop(plan, PRESET_SIZES[preset])
         one = warm_end_to_end(plan, world, 1, preset)
         runs[preset] = {
@@ -391,6 +392,12 @@ def main() -> None:
         action="store_true",
         help="measure only the bare loop, the 1-worker ingest and the checks' cost; write nothing",
     )
+    parser.add_argument(
+        "--full-size-only",
+        choices=FULL_SIZE_PRESETS,
+        default=None,
+        help="measure only the full-size world's bare loop, ingest and checks at this preset; write nothing",
+    )
     parser.add_argument("--child", type=int, nargs=2, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--bare-child", type=float, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -399,6 +406,9 @@ def main() -> None:
         return
     if args.bare_child is not None:
         bare_child(args.world, args.bare_child)
+        return
+    if args.full_size_only is not None:
+        print(json.dumps(full_size(args.full_size_world, (args.full_size_only,)), indent=2))
         return
     from relightanyone.ingest.runner import PRESET_SIZES
 

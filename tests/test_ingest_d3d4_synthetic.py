@@ -367,6 +367,19 @@ def test_d4_v1_affine_applies_in_display_space(v1_root):
     )
 
 
+def test_identity_calibration_clips_only_what_is_negative():
+    from relightanyone.ingest.decode import apply_colour_calibration
+    from relightanyone.ingest.records import ColourCalibration
+
+    image = np.random.default_rng(1).uniform(0.0, 2.0, size=(6, 7, 3)).astype(np.float32)
+    same = apply_colour_calibration(image, ColourCalibration.identity())
+    assert same.dtype == np.float32 and np.array_equal(same, image)
+    image[0, 0] = [-0.5, 0.25, np.nan]
+    clipped = apply_colour_calibration(image.astype(np.float64), ColourCalibration.identity())
+    assert clipped.dtype == np.float32 and clipped[0, 0, 0] == 0.0 and clipped[0, 0, 1] == 0.25
+    assert np.isnan(clipped[0, 0, 2]) and np.array_equal(clipped[1:], image[1:])
+
+
 def test_d4_v1_missing_png_and_colour_file_are_refused(v1_root, tmp_path):
     src = shutil.copytree(v1_root, tmp_path / "v1")
     first = sorted(p.name for p in src.iterdir())[0]
