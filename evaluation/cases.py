@@ -251,9 +251,10 @@ def answer_lights_in_frame(
     """
     truth = answers.answer_lights()
     positions = truth.positions @ frame.world_to_norm[:3, :3].T + frame.world_to_norm[:3, 3]
-    indices, worst = match_lights(positions, rig.positions.numpy())
+    indices, worst = match_lights(positions, rig.positions.cpu().numpy())
     lights = PointLights(
-        torch.as_tensor(positions, dtype=torch.float32), rig.intensities[torch.as_tensor(indices)].float()
+        torch.as_tensor(positions, dtype=torch.float32),
+        rig.intensities.cpu()[torch.as_tensor(indices)].float(),
     )
     return lights, indices, worst
 

@@ -13,6 +13,7 @@ import click
 from relightanyone.cli_options import (
     EXISTING_FOLDER,
     FILE,
+    device_option,
     fit_iterations_option,
     out_option,
     quiet_option,
@@ -84,6 +85,7 @@ from relightanyone.cli_options import (
     help="Also copy evaluation.json here (e.g. bench/results/evaluation.json).",
 )
 @quiet_option()
+@device_option()
 def evaluate_command(
     world: Path,
     data: tuple[str, ...],
@@ -100,6 +102,7 @@ def evaluate_command(
     seed: int,
     json_copy: Path | None,
     quiet: bool,
+    device: str,
 ) -> None:
     """Fit held-out subjects and measure relighting against the synthetic world's answers.
 
@@ -109,6 +112,7 @@ def evaluate_command(
     from relightanyone.evaluation.run import run_evaluation, world_datasets
     from relightanyone.evaluation.tables import EvaluationInputs, EvaluationSettings
     from relightanyone.evaluation.truth import WorldAnswers
+    from relightanyone.model.device import resolve_device
 
     answers = WorldAnswers(world)
     inputs = EvaluationInputs(
@@ -128,6 +132,7 @@ def evaluate_command(
         views_per_step=views_per_step,
         seed=seed,
         progress=not quiet,
+        device=str(resolve_device(device)),
     )
     results = run_evaluation(inputs, settings, out, json_copy)
     click.echo(f"wrote {out / 'report.md'} and {out / 'evaluation.json'}")

@@ -55,8 +55,8 @@ class SingleStageRun:
     full_on_rig: PointLights | None = None
 
 
-def load_single_stage_run(run: str | Path) -> SingleStageRun:
-    """Load a ``relightanyone train stage2 --single-stage`` run folder."""
+def load_single_stage_run(run: str | Path, device: torch.device | str = "cpu") -> SingleStageRun:
+    """Load a ``relightanyone train stage2 --single-stage`` run folder, its network and rigs on ``device``."""
 
     run = Path(run)
     checkpoint_path = run / CHECKPOINT_NAME
@@ -80,8 +80,15 @@ def load_single_stage_run(run: str | Path) -> SingleStageRun:
     columns = {name: [row[name] for row in rows] for name in rows[0]}
     rig = olat_rig_from_table(columns, source=str(dataset_path / LIGHTS_NAME))
     full_on_rig = full_on_rig_from_table(columns, rig, source=str(dataset_path / LIGHTS_NAME))
-    model = model.eval().requires_grad_(False)
-    return SingleStageRun(model, preset, rig, checkpoint["dataset"], run, full_on_rig)
+    model = model.to(device).eval().requires_grad_(False)
+    return SingleStageRun(
+        model,
+        preset,
+        rig.to(device),
+        checkpoint["dataset"],
+        run,
+        None if full_on_rig is None else full_on_rig.to(device),
+    )
 
 
 def decode_single_stage(

@@ -69,6 +69,7 @@ class EvaluationSettings:
     views_per_step: int = 4
     seed: int = 0
     progress: bool = True
+    device: str = "cpu"  # torch device of the fits and renders; scores are computed on the CPU
 
 
 @dataclass
@@ -94,6 +95,7 @@ class Comparison:
     def add(
         self, label: str, prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, lpips
     ) -> None:
+        prediction = prediction.cpu()  # renders come from the fit's device; the truth is on the CPU
         for name, values in image_metrics(prediction, truth, mask, lpips).items():
             self.scores.setdefault(name, []).extend(float(v) for v in values)
         self.examples.append((label, prediction[0].numpy(), truth[0].numpy(), mask[0, 0].numpy()))
@@ -189,25 +191,28 @@ def render_weighted_rig(avatar, cameras, cases: list[LightCase]) -> torch.Tensor
     """
     lightings = []
     for case in cases:
-        weights = torch.as_tensor(case.weights, dtype=torch.float32)
-        lightings.append(PointLights(case.basis.positions, case.basis.intensities.float() * weights))
+        weights = torch.as_tensor(case.weights, dtype=torch.float32, device=case.basis.intensities.device)
+        weighted = PointLights(case.basis.positions, case.basis.intensities.float() * weights)
+        lightings.append(weighted.to(cameras.w2c.device))
     return render_lightings(avatar, cameras, lightings)
 
 
 def compare(avatar, cases: list[LightCase], lpips) -> Comparison:
-    """Render every case (grouped by camera set: one batched render per group) and score it."""
+    """Render every case (grouped by camera set: one batched render per group, on the avatar's device)
+    and score it."""
+    device = avatar.means.device
     comparison = Comparison()
     groups: dict[tuple[str, ...], list[LightCase]] = {}
     for case in cases:
         groups.setdefault(tuple(v.camera for v in case.views), []).append(case)
     predictions: dict[int, torch.Tensor] = {}
     for group in groups.values():
-        cameras = view_cameras(group[0].views)
+        cameras = view_cameras(group[0].views).to(device)
         olat = [c for c in group if c.light is not None]
         if olat:
             lights = PointLights(
                 torch.cat([c.light.positions for c in olat]), torch.cat([c.light.intensities for c in olat])
-            )
+            ).to(device)
             for case, image in zip(olat, render_point_lights(avatar, cameras, lights), strict=True):
                 predictions[id(case)] = image
         relit = [c for c in group if c.light is None]
@@ -227,10 +232,11 @@ class Evaluation:
 
         self.inputs = inputs
         self.settings = settings
-        self.model = load_relightable_model(inputs.stage1, inputs.stage2)
+        self.device = torch.device(settings.device)
+        self.model = load_relightable_model(inputs.stage1, inputs.stage2, self.device)
         self.single = None
         if inputs.single_stage is not None:
-            self.single = load_single_stage_run(inputs.single_stage)
+            self.single = load_single_stage_run(inputs.single_stage, self.device)
         available, reason = lpips_status()
         self.lpips = LpipsMetric() if available else None
         self.lpips_note = reason
@@ -267,6 +273,7 @@ class Evaluation:
 
         views = load_fit_views(self.inputs.datasets[world_name], subject, cameras=cameras)
         self.inputs_images.setdefault(f"{world_name}/{subject}", views.images[0].permute(1, 2, 0).numpy())
+        views = views.to(self.device)
         torch.manual_seed(self.settings.seed)
         start = time.perf_counter()
         if single:
@@ -430,7 +437,9 @@ class Evaluation:
                 )
                 tracked = dataset.meshes().get(make_mesh_key(subject, frame))
                 tracked = (
-                    None if tracked is None else torch.as_tensor(np.asarray(tracked), dtype=torch.float32)
+                    None
+                    if tracked is None
+                    else torch.as_tensor(np.asarray(tracked), dtype=torch.float32, device=self.device)
                 )
                 self.inputs_images.setdefault(f"{world_name}/{subject}", self._first_image(path, subject))
                 decoded[f"{world_name}/{subject}"] = self._ablation_entry(

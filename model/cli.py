@@ -18,9 +18,11 @@ from relightanyone.cli_options import (
     ANY_PATH,
     EXISTING_FOLDER,
     device_option,
+    loader_workers_option,
     options,
     out_option,
     parsed_by,
+    precision_option,
     preset_option,
     seed_option,
     threads_option,
@@ -76,9 +78,10 @@ def _set_threads(threads: int | None) -> None:
 @seed_option()
 @EVAL_VIEWS_OPTION
 @threads_option()
+@device_option()
 @out_option("Folder for the warm-up run and one dataset view per --data.")
 def align_colour_command(
-    data, uncalibrated, preset, warmup_iterations, seed, eval_views, threads, out
+    data, uncalibrated, preset, warmup_iterations, seed, eval_views, threads, device, out
 ) -> None:
     """Learn the colour matrix of uncalibrated datasets (warm-up without lighting codes, paper 4.1).
 
@@ -94,7 +97,7 @@ def align_colour_command(
 
     _set_threads(threads)
     chosen = with_overrides(get_preset(preset), warmup_iterations=warmup_iterations)
-    report = align_colours(list(data), tuple(uncalibrated), chosen, out, seed, eval_views)
+    report = align_colours(list(data), tuple(uncalibrated), chosen, out, seed, eval_views, device)
     click.echo("colour matrices (render -> dataset): " + json.dumps(report.get("colour_matrices", {})))
     click.echo(f"dataset views for stage 1: {', '.join(str(out / n) for n in report['datasets'])}")
 
@@ -127,6 +130,9 @@ def train_group() -> None:
 @RESUME_OPTION
 @EVAL_VIEWS_OPTION
 @threads_option()
+@device_option()
+@precision_option()
+@loader_workers_option()
 def train_stage1_command(
     data,
     preset,
@@ -140,6 +146,9 @@ def train_stage1_command(
     resume,
     eval_views,
     threads,
+    device,
+    precision,
+    loader_workers,
 ) -> None:
     """Train stage 1 on one or more normalized datasets.
 
@@ -158,12 +167,26 @@ def train_stage1_command(
     )
     if uncalibrated and colour_warmup:
         warm = run_colour_warmup(
-            list(data), out, chosen, tuple(uncalibrated), seed, eval_views_per_dataset=eval_views
+            list(data),
+            out,
+            chosen,
+            tuple(uncalibrated),
+            seed,
+            eval_views_per_dataset=eval_views,
+            device=device,
         )
         if warm:
             click.echo("colour warm-up matrices (render -> dataset): " + json.dumps(warm["colour_matrices"]))
     config = Stage1Config(
-        data=list(data), out=out, preset=chosen, seed=seed, resume=resume, eval_views_per_dataset=eval_views
+        data=list(data),
+        out=out,
+        preset=chosen,
+        seed=seed,
+        resume=resume,
+        eval_views_per_dataset=eval_views,
+        device=device,
+        precision=precision,
+        loader_workers=loader_workers,
     )
     metrics = train_stage1(config)
     for name, values in (metrics.get("held_out") or {}).items():
@@ -197,8 +220,32 @@ def train_stage1_command(
 @BATCH_SIZE_OPTION
 @seed_option()
 @RESUME_OPTION
+@threads_option()
+@device_option()
+@precision_option()
+@click.option(
+    "--checkpoint-maps/--no-checkpoint-maps",
+    default=False,
+    show_default=True,
+    help="Recompute the trained networks' UV-map activations in the backward pass (less memory, ~1 more "
+    "forward pass of those networks per step; the same gradients).",
+)
+@loader_workers_option()
 def train_stage2_command(
-    data, stage1_run, out, preset, single_stage, iterations, batch_size, seed, resume
+    data,
+    stage1_run,
+    out,
+    preset,
+    single_stage,
+    iterations,
+    batch_size,
+    seed,
+    resume,
+    threads,
+    device,
+    precision,
+    checkpoint_maps,
+    loader_workers,
 ) -> None:
     """Train stage 2 (relighting UNet on a frozen stage-1 run) or the single-stage baseline.
 
@@ -211,6 +258,7 @@ def train_stage2_command(
     from relightanyone.model.networks.presets import get_preset, get_stage2_preset, with_overrides
     from relightanyone.model.train.stage2 import Stage2Config, train_stage2
 
+    _set_threads(threads)
     config = Stage2Config(
         data=data,
         out=out,
@@ -220,6 +268,10 @@ def train_stage2_command(
         stage1_preset=get_preset(preset) if single_stage else None,
         seed=seed,
         resume=resume,
+        device=device,
+        precision=precision,
+        checkpoint_maps=checkpoint_maps,
+        loader_workers=loader_workers,
     )
     metrics = train_stage2(config)
     last = metrics.get("last_losses") or {}
@@ -250,13 +302,19 @@ def render_group() -> None:
     help="Write lighting_grid.png: a subject of every dataset under every dataset's lighting code.",
 )
 @out_option("Folder for the PNGs.")
-def render_stage1_command(run, subject, lighting_code, cameras, orbit_count, lighting_grid, out) -> None:
+@device_option()
+def render_stage1_command(
+    run, subject, lighting_code, cameras, orbit_count, lighting_grid, out, device
+) -> None:
     """Render a stage-1 subject to PNGs (sRGB); report colour shift and geometry when swapping lighting codes."""
     if subject is None and not lighting_grid:
         raise click.UsageError("give --subject, --lighting-grid, or both")
+    from relightanyone.model.device import resolve_device
     from relightanyone.model.train.run import render_run
 
-    reports = render_run(run, out, subject, lighting_code, cameras, orbit_count, lighting_grid)
+    reports = render_run(
+        run, out, subject, lighting_code, cameras, orbit_count, lighting_grid, resolve_device(device)
+    )
     shifted = reports.get("subject", {})
     if "mean_colour_shift" in shifted:
         click.echo(
@@ -302,6 +360,7 @@ def render_stage1_command(run, subject, lighting_code, cameras, orbit_count, lig
 @click.option("--image-scale", type=float, default=1.0, show_default=True, help="Resize inputs (and K).")
 @seed_option()
 @threads_option()
+@device_option()
 @out_option("Folder for <subject>.avatar files and fit_report.json.")
 def fit_command(
     stage1_run,
@@ -318,6 +377,7 @@ def fit_command(
     image_scale,
     seed,
     threads,
+    device,
     out,
 ) -> None:
     """Fit unseen subjects (inversion, then finetuning with the locality regulariser, paper 3.3).
@@ -327,6 +387,7 @@ def fit_command(
 
     Example: relightanyone fit --stage1 runs/s1 --stage2 runs/s2 --data out/faceolat --split test --out avatars
     """
+    from relightanyone.model.device import resolve_device
     from relightanyone.model.fit.fitter import FitSettings
     from relightanyone.model.fit.subjects import fit_subjects, subjects_to_fit, write_fit_report
 
@@ -349,6 +410,7 @@ def fit_command(
         pattern=pattern,
         settings=settings,
         image_scale=image_scale,
+        device=resolve_device(device),
     ):
         fits.append(fit)
         if fit.kept:
@@ -591,6 +653,49 @@ def _load_avatar(path: Path, device: str):
     return avatar, source
 
 
+@click.command("plan")
+@preset_option("paper", "Preset of stage 1 and stage 2 (sizes and batch).")
+@click.option(
+    "--batch-size", type=click.IntRange(min=1), default=None, help="Override the presets' batch size."
+)
+@click.option("--crop", type=click.IntRange(min=8), default=None, help="Override the presets' crop size.")
+@click.option(
+    "--lights",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Lights of the OLAT rig (default: those of --data when given, else 150).",
+)
+@click.option(
+    "--data",
+    type=EXISTING_FOLDER,
+    default=None,
+    help="A normalized dataset: its template mesh sets the Gaussians, its rig the lights.",
+)
+@click.option("--json", "json_path", type=ANY_PATH, default=None, help="Also write the plan as JSON here.")
+def plan_command(preset, batch_size, crop, lights, data, json_path) -> None:
+    """Estimate peak memory per GPU of stage 1, stage 2, the single-stage baseline and fitting, and
+    propose batch, accumulation, precision and checkpointing that fit 24, 48 and 80 GB GPUs.
+
+    Nothing is allocated: the networks are traced on torch's meta device.
+
+    Example: relightanyone plan --preset paper --data out/faceolat
+    """
+    from relightanyone.model.train.plan import DEFAULT_RIG_LIGHTS, PlanRequest, format_plan, memory_plan
+
+    template = None
+    if data is not None:
+        from relightanyone.format.reader import NormalizedDataset
+        from relightanyone.format.schema import TEMPLATE_NAME
+
+        template = data / TEMPLATE_NAME if (data / TEMPLATE_NAME).is_file() else None
+        lights = lights or len(NormalizedDataset(data).lights()) or None
+    request = PlanRequest(preset, batch_size, crop, lights or DEFAULT_RIG_LIGHTS, template=template)
+    plan = memory_plan(request)
+    click.echo(format_plan(plan))
+    if json_path is not None:
+        Path(json_path).write_text(json.dumps(plan, indent=2) + "\n")
+
+
 COMMANDS: dict[str, click.Command] = {
     "align-colour": align_colour_command,
     "train": train_group,
@@ -598,4 +703,5 @@ COMMANDS: dict[str, click.Command] = {
     "fit": fit_command,
     "relight": relight_command,
     "export": export_command,
+    "plan": plan_command,
 }

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import torch
 
 from relightanyone.errors import InputError
@@ -19,3 +21,13 @@ def resolve_device(name: str) -> torch.device:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise InputError(f"--device {name}: CUDA is not available on this machine; use --device cpu")
     return device
+
+
+def loader_workers(device: torch.device, requested: int | None = None) -> int:
+    """Worker processes of a trainer's batch loader: ``requested``, or by default none on the CPU (the
+    training step already uses every core; batches are made in the loop) and up to four on a GPU."""
+    if requested is not None:
+        if requested < 0:
+            raise InputError(f"--loader-workers must be >= 0, got {requested}")
+        return requested
+    return min(4, max((os.cpu_count() or 1) // 2, 1)) if device.type == "cuda" else 0

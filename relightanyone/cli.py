@@ -48,6 +48,7 @@ COMMAND_ORDER = (
     "fit",
     "relight",
     "export",
+    "plan",
     "expand",
     "evaluate",
     "report",

@@ -99,6 +99,31 @@ def device_option() -> Decorator:
     )
 
 
+# Arithmetic of the convolutional map networks (mixed precision); everything else stays float32.
+PRECISION_NAMES = ("fp32", "bf16")
+
+
+def precision_option() -> Decorator:
+    return click.option(
+        "--precision",
+        type=click.Choice(PRECISION_NAMES),
+        default="fp32",
+        show_default=True,
+        help="fp32, or bf16: the convolutional map networks run under bfloat16 autocast (per-Gaussian "
+        "maths, rasterization and losses stay float32).",
+    )
+
+
+def loader_workers_option() -> Decorator:
+    return click.option(
+        "--loader-workers",
+        type=click.IntRange(min=0),
+        default=None,
+        help="Processes that make the next training batches during a step (default: 0 on the CPU, up to 4 "
+        "with CUDA). Batches depend on the iteration alone, so the weights do not depend on this.",
+    )
+
+
 def quiet_option(help: str = "No progress bars.") -> Decorator:
     return click.option("--quiet", is_flag=True, help=help)
 

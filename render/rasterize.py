@@ -12,6 +12,13 @@ Backends (``backend=``):
 - ``"dense"``: the brute-force reference, every pixel × every Gaussian (tests, small scenes);
 - ``"auto"``: gsplat for CUDA tensors when installed, else cpp for float32 CPU tensors when the kernel
   builds, else torch.
+
+``rasterize_batched`` renders B independent Gaussian sets, each into its own C cameras, in one call: gsplat
+takes the batch dimension natively (one launch for all B·C images); the CPU backends render set by set.
+
+Input values (NaN, infinite, negative scales) are checked on CPU tensors and, on a GPU, only when
+:func:`set_value_checks` turned the checks on: each check reads a value back to the host, which would stall
+a GPU training step on every call. Shapes and dtypes are always checked.
 """
 
 from __future__ import annotations
@@ -33,6 +40,16 @@ from relightanyone.render.rasterize_torch import (
 
 BACKENDS = ("auto", "cpp", "torch", "dense", "gsplat")
 MODES = ("classic", "antialiased")
+_VALUE_CHECKS_ON_GPU = [False]
+
+
+def set_value_checks(on_gpu: bool) -> None:
+    """Check input values (finite, non-negative scales) also for GPU tensors (a debugging switch)."""
+    _VALUE_CHECKS_ON_GPU[0] = bool(on_gpu)
+
+
+def _checks_values(tensor: Tensor) -> bool:
+    return tensor.device.type == "cpu" or _VALUE_CHECKS_ON_GPU[0]
 
 
 class RasterOutput(NamedTuple):
@@ -55,7 +72,7 @@ def _check_tensor(name: str, tensor: Tensor, shape: tuple) -> None:
         raise ValueError(f"rasterize: {name} must have shape {wanted}, got {tuple(tensor.shape)}")
     if not tensor.is_floating_point():
         raise ValueError(f"rasterize: {name} must be a floating-point tensor, got {tensor.dtype}")
-    if not bool(torch.isfinite(tensor).all()):
+    if _checks_values(tensor) and not bool(torch.isfinite(tensor).all()):
         bad = "NaN" if bool(torch.isnan(tensor).any()) else "infinite"
         raise ValueError(f"rasterize: {name} contains {bad} values; check the upstream computation or data")
 
@@ -135,7 +152,7 @@ def rasterize(
         background = background[None].expand(C, F)
     else:
         _check_tensor("background", background, (C, F))
-    if bool((scales < 0).any()):
+    if _checks_values(scales) and bool((scales < 0).any()):
         raise ValueError("rasterize: scales must be non-negative standard deviations (pass exp(log_scales))")
 
     chosen = select_backend(backend, means)
@@ -203,3 +220,79 @@ def rasterize(
     alpha = alpha[:, None]
     depth = image[:, F:] / torch.clamp(alpha, min=1e-10)
     return RasterOutput(image[:, :F], alpha, depth)
+
+
+def rasterize_batched(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    w2c: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    background: Tensor | None = None,
+    mode: str = "classic",
+    backend: str = "auto",
+) -> RasterOutput:
+    """Render B Gaussian sets, set ``b`` into its own C cameras ``w2c[b]``, ``K[b]``.
+
+    Args:
+        means (B,N,3), quats (B,N,4), scales (B,N,3), opacities (B,N), features (B,N,F) or (B,C,N,F);
+        w2c (B,C,4,4), K (B,C,3,3); background (F,) or (B,C,F). The rest as :func:`rasterize`.
+
+    Returns:
+        RasterOutput with features (B,C,F,H,W), alpha (B,C,1,H,W), depth (B,C,1,H,W).
+    """
+    batch = means.shape[0]
+    if means.dim() != 3 or w2c.dim() != 4 or K.dim() != 4 or w2c.shape[0] != batch or K.shape[0] != batch:
+        raise ValueError(
+            f"rasterize_batched: means (B, N, 3) and cameras (B, C, 4, 4), (B, C, 3, 3) must share B; got "
+            f"{tuple(means.shape)}, {tuple(w2c.shape)}, {tuple(K.shape)}"
+        )
+    if select_backend(backend, means) == "gsplat":
+        cameras = w2c.shape[1]
+        channels = features.shape[-1]
+        if background is None:
+            background = features.new_zeros(batch, cameras, channels)
+        elif background.dim() == 1:
+            background = background.expand(batch, cameras, channels)
+        image, alpha, depth = rasterize_gsplat(
+            means,
+            quats,
+            scales,
+            opacities,
+            features,
+            w2c,
+            K,
+            int(width),
+            int(height),
+            background,
+            mode,
+            0.01,
+            1e10,
+            0.3,
+            16,
+        )
+        return RasterOutput(image, alpha, depth)
+    outputs = []
+    for b in range(batch):
+        sample_background = background if background is None or background.dim() == 1 else background[b]
+        outputs.append(
+            rasterize(
+                means[b],
+                quats[b],
+                scales[b],
+                opacities[b],
+                features[b],
+                w2c[b],
+                K[b],
+                width,
+                height,
+                background=sample_background,
+                mode=mode,
+                backend=backend,
+            )
+        )
+    return RasterOutput(*(torch.stack(parts) for parts in zip(*outputs, strict=True)))

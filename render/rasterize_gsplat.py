@@ -6,7 +6,9 @@ Conversions:
 - depth: gsplat's ``"RGB+ED"`` appends expected depth ``Σ wᵢzᵢ / max(α, 1e-10)`` as the last channel, the
   same definition as the CPU backends;
 - Gaussians whose three scales are all zero are dropped (opacity 0), as in the CPU backends;
-- layout: gsplat returns ``(C,H,W,X)``; we return ``(C,X,H,W)`` and ``packed=False`` (fast for few cameras).
+- layout: gsplat returns ``(..., C,H,W,X)``; we return ``(..., C,X,H,W)`` and ``packed=False`` (fast for few
+  cameras). Leading batch dimensions (B independent Gaussian sets, each with its own C cameras) pass
+  through: gsplat renders them in one launch.
 """
 
 from __future__ import annotations
@@ -46,14 +48,15 @@ def rasterize_gsplat(
     eps2d: float,
     tile_size: int,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """features (N,F) or (C,N,F), background (C,F) → (image (C,F,H,W), alpha (C,1,H,W), depth (C,1,H,W))."""
+    """features (..., N,F) or (..., C,N,F), background (..., C,F) → (image (..., C,F,H,W), alpha
+    (..., C,1,H,W), depth (..., C,1,H,W)); Gaussians (..., N, ·), cameras (..., C, 4, 4), (..., C, 3, 3)."""
     from gsplat import rasterization
 
     # Same rule as the CPU backends: Gaussians with all scales zero are not drawn (gsplat would draw a dot).
     opacities = opacities * (scales != 0).any(-1).to(opacities.dtype)
     K_gsplat = K.clone()
-    K_gsplat[:, 0, 2] += 0.5
-    K_gsplat[:, 1, 2] += 0.5
+    K_gsplat[..., 0, 2] += 0.5
+    K_gsplat[..., 1, 2] += 0.5
     colors, alphas, _meta = rasterization(
         means,
         quats,
@@ -73,6 +76,6 @@ def rasterize_gsplat(
         render_mode="RGB+ED",
         rasterize_mode=mode,
     )
-    image = colors[..., :-1].permute(0, 3, 1, 2)
-    depth = colors[..., -1:].permute(0, 3, 1, 2)
-    return image, alphas.permute(0, 3, 1, 2), depth
+    image = colors[..., :-1].movedim(-1, -3)
+    depth = colors[..., -1:].movedim(-1, -3)
+    return image, alphas.movedim(-1, -3), depth

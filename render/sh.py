@@ -166,7 +166,7 @@ def expand_per_degree(per_degree: torch.Tensor) -> torch.Tensor:
     """Repeat a per-degree ``(..., order + 1)`` tensor to per-coefficient ``(..., (order + 1) ** 2)``."""
     order = per_degree.shape[-1] - 1
     repeats = torch.tensor([2 * degree + 1 for degree in range(order + 1)], device=per_degree.device)
-    return torch.repeat_interleave(per_degree, repeats, dim=-1)
+    return torch.repeat_interleave(per_degree, repeats, dim=-1, output_size=(order + 1) ** 2)
 
 
 def irradiance_sh(radiance_sh: torch.Tensor) -> torch.Tensor:

@@ -20,7 +20,6 @@ from relightanyone.model.train.losses import (
     ssim_loss,
     vertex_l2,
 )
-from relightanyone.model.train.memory import estimate_training_memory
 from relightanyone.model.train.sampling import (
     background_colours,
     balanced_batch,
@@ -170,11 +169,3 @@ def test_colour_cast_error_is_zero_for_the_true_cast_and_gain_free():
     assert np.allclose(correction_from_render_matrix(cast) @ cast, np.eye(3))
     with pytest.raises(ValueError, match="singular"):
         correction_from_render_matrix(np.zeros((3, 3)))
-
-
-def test_memory_estimate_grows_with_the_preset():
-    tiny = estimate_training_memory(get_preset("tiny"), 1_000_000, 3000)
-    paper = estimate_training_memory(get_preset("paper"), 200_000_000, 700_000)
-    assert tiny["total"] == sum(v for k, v in tiny.items() if k != "total")
-    assert paper["total"] > 10 * tiny["total"]
-    assert paper["optimizer_state"] == 2 * 200_000_000 * 4

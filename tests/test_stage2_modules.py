@@ -9,7 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from relightanyone.model.networks.gaussians import TexelBinding, gather_texels
+from relightanyone.model.networks.gaussians import gather_texels
 from relightanyone.model.networks.presets import get_preset
 from relightanyone.model.networks.reflectance import (
     INITIAL_ALBEDO,
@@ -38,7 +38,6 @@ from relightanyone.model.networks.stage2 import (
 from relightanyone.render.camera import look_at_w2c
 from relightanyone.render.lights import PointLights, fibonacci_sphere_directions
 from relightanyone.render.sh import lambertian_transfer, sh_count
-from relightanyone.render.uv_binding import UVBinding
 
 UV_SIZE = 16
 
@@ -46,16 +45,9 @@ UV_SIZE = 16
 @pytest.fixture(scope="module")
 def sphere(tmp_path_factory):
     """Template vertices (V, 3) and the texel binding of a UV sphere (one seam) at UV 16²."""
-    from helpers.stage1_world import sphere_obj
+    from helpers.stage1_world import sphere_template_binding
 
-    from relightanyone.render.mesh import load_obj
-
-    path = tmp_path_factory.mktemp("sphere") / "template.obj"
-    path.write_text(sphere_obj()[1])
-    mesh = load_obj(path)
-    uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, UV_SIZE)
-    binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
-    return torch.as_tensor(mesh.vertices, dtype=torch.float32), binding
+    return sphere_template_binding(tmp_path_factory.mktemp("sphere"), UV_SIZE)
 
 
 def _random_params(batch: int, count: int, order: int, seed: int = 0):

@@ -24,6 +24,7 @@ The result is a :class:`relightanyone.model.fit.avatar.FittedAvatar`.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -114,9 +115,27 @@ class RelightableModel:
         """(S, z_id) identity codes of the stage-1 training subjects."""
         return self.stage1.identity_codes.detach()
 
+    @property
+    def device(self) -> torch.device:
+        return self.lighting_code.device
 
-def load_relightable_model(stage1_run: Path, stage2_run: Path) -> RelightableModel:
-    """Load a stage-1 run and the stage-2 run trained on it (not a single-stage baseline run)."""
+    def to(self, device: torch.device | str) -> RelightableModel:
+        """This model with its networks moved to ``device`` (in place, as ``nn.Module.to``) and its
+        tensors and rigs copied there."""
+        return dataclasses.replace(
+            self,
+            stage1=self.stage1.to(device),
+            lighting_code=self.lighting_code.to(device),
+            stage2=self.stage2.to(device),
+            rig=self.rig.to(device),
+            full_on_rig=None if self.full_on_rig is None else self.full_on_rig.to(device),
+        )
+
+
+def load_relightable_model(
+    stage1_run: Path, stage2_run: Path, device: torch.device | str = "cpu"
+) -> RelightableModel:
+    """Load a stage-1 run and the stage-2 run trained on it (not a single-stage baseline run), on ``device``."""
     import json
 
     stage2_run = Path(stage2_run)
@@ -158,7 +177,7 @@ def load_relightable_model(stage1_run: Path, stage2_run: Path) -> RelightableMod
     columns = {name: [row[name] for row in rows] for name in rows[0]}
     rig = olat_rig_from_table(columns, source=str(dataset_path / LIGHTS_NAME))
     full_on_rig = full_on_rig_from_table(columns, rig, source=str(dataset_path / LIGHTS_NAME))
-    return RelightableModel(
+    model = RelightableModel(
         stage1=run.model,
         lighting_code=run.model.lighting_codes[run.datasets.index(dataset_name)].detach().clone(),
         stage2=stage2.eval().requires_grad_(False),
@@ -172,6 +191,7 @@ def load_relightable_model(stage1_run: Path, stage2_run: Path) -> RelightableMod
             "olat_dataset": str(dataset_path.resolve()),
         },
     )
+    return model.to(device)
 
 
 def locality_loss(
@@ -316,7 +336,7 @@ class Fitter:
     def step_backgrounds(self, step: int, count: int, stream_offset: int = 0) -> torch.Tensor:
         """(count, 3) random background colours of one step (stateless, as the views)."""
         rng = iteration_generator(self.settings.seed, step, BACKGROUND_STREAM + stream_offset)
-        return torch.from_numpy(rng.random((count, 3)).astype(np.float32))
+        return torch.from_numpy(rng.random((count, 3)).astype(np.float32)).to(self.z_id.device)
 
     def data_terms(
         self, view_index: list[int], background: torch.Tensor | None = None
@@ -492,12 +512,14 @@ def fit_subject(
     settings: FitSettings | None = None,
     image_scale: float = 1.0,
     out: Path | None = None,
+    device: torch.device | str = "cpu",
 ) -> FittedAvatar:
-    """Fit a subject of a normalized dataset end to end (inversion, then finetuning); save to ``out`` if given."""
+    """Fit a subject of a normalized dataset end to end (inversion, then finetuning) on ``device``; save
+    to ``out`` if given."""
     settings = settings or FitSettings()
     torch.manual_seed(settings.seed)
-    model = load_relightable_model(stage1_run, stage2_run)
-    views = load_fit_views(data, subject, frame, cameras, pattern, image_scale)
+    model = load_relightable_model(stage1_run, stage2_run, device)
+    views = load_fit_views(data, subject, frame, cameras, pattern, image_scale).to(device)
     if (
         views.tracked_vertices is not None
         and views.tracked_vertices.shape != model.stage1.mesh_decoder.template_vertices.shape

@@ -8,6 +8,8 @@ from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import torch
+
 from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import check_name
@@ -52,6 +54,7 @@ def fit_subjects(
     pattern: str = "full",
     settings: FitSettings | None = None,
     image_scale: float = 1.0,
+    device: torch.device | str = "cpu",
 ) -> Iterator[SubjectFit]:
     """Fit each subject into ``out/<subject>.avatar`` (:func:`~relightanyone.model.fit.fitter.fit_subject`),
     yielding each as it is done; an avatar already in ``out`` is kept."""
@@ -73,6 +76,7 @@ def fit_subjects(
             settings=settings,
             image_scale=image_scale,
             out=target,
+            device=device,
         )
         views = len(avatar.metadata.get("cameras", []))
         yield SubjectFit(subject, target, False, views, dict(avatar.metadata.get("final_losses", {})))

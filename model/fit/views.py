@@ -3,6 +3,7 @@ through its :class:`~relightanyone.format.torch_dataset.NormalizedTorchDataset`.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,6 +39,18 @@ class FitViews:
 
     def __len__(self) -> int:
         return self.images.shape[0]
+
+    def to(self, device: torch.device | str) -> FitViews:
+        """A copy with the images, masks, cameras and tracked mesh on ``device``."""
+        tracked = self.tracked_vertices
+        return dataclasses.replace(
+            self,
+            images=self.images.to(device),
+            masks=self.masks.to(device),
+            K=self.K.to(device),
+            w2c=self.w2c.to(device),
+            tracked_vertices=None if tracked is None else tracked.to(device),
+        )
 
 
 def load_fit_views(

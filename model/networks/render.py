@@ -13,7 +13,7 @@ import torch
 
 from relightanyone.model.networks.gaussians import Gaussians
 from relightanyone.render.camera import look_at_w2c
-from relightanyone.render.rasterize import rasterize
+from relightanyone.render.rasterize import rasterize, rasterize_batched
 
 
 def render_gaussians(
@@ -28,14 +28,19 @@ def render_gaussians(
     batch = gaussians.means.shape[0]
     if K.shape[0] != batch or w2c.shape[0] != batch:
         raise ValueError(f"{batch} Gaussian sets but {K.shape[0]} intrinsics and {w2c.shape[0]} poses")
-    images, alphas = [], []
-    for index in range(batch):
-        image, alpha = render_views(
-            gaussians, K[index : index + 1], w2c[index : index + 1], width, height, index
-        )
-        images.append(image)
-        alphas.append(alpha)
-    return torch.cat(images), torch.cat(alphas)
+    # One call for the whole batch: one launch on gsplat, sample by sample on the CPU backends.
+    image, alpha, _ = rasterize_batched(
+        gaussians.means,
+        gaussians.quats,
+        gaussians.scales,
+        gaussians.opacities,
+        gaussians.colours,
+        w2c[:, None],
+        K[:, None],
+        width,
+        height,
+    )
+    return image[:, 0], alpha[:, 0]
 
 
 def render_views(

@@ -26,6 +26,7 @@ from relightanyone.model.networks.gaussians import (
     gather_texels,
     geometry_output_bias,
 )
+from relightanyone.model.networks.precision import run_maps
 from relightanyone.model.networks.presets import Stage1Preset
 from relightanyone.model.networks.reflectance import (
     VIEW_DEPENDENT_CHANNELS,
@@ -84,6 +85,9 @@ class SingleStageModel(nn.Module):
             *sizes,
             output_bias=view_dependent_output_bias(),
         )
+        # How the conv decoders run (set by a trainer; not part of the weights), see networks.precision.
+        self.precision = "fp32"
+        self.checkpoint_maps = False
 
     @property
     def gaussian_count(self) -> int:
@@ -103,10 +107,11 @@ class SingleStageModel(nn.Module):
         """
         z_id = self.identity_codes[subject_index]
         vertices = self.mesh_decoder(z_id)
-        geometry_maps = self.geometry_decoder(z_id)
-        reflectance_maps = self.reflectance_decoder(z_id)
+        how = {"precision": self.precision, "checkpointed": self.checkpoint_maps}
+        geometry_maps = run_maps(self.geometry_decoder, z_id, **how)
+        reflectance_maps = run_maps(self.reflectance_decoder, z_id, **how)
         view = view_directions(camera_positions, self.head_centre)
-        view_maps = self.view_decoder(torch.cat([z_id, view], dim=1))
+        view_maps = run_maps(self.view_decoder, torch.cat([z_id, view], dim=1), **how)
         params = activate_relight_params(
             gather_texels(reflectance_maps, self.binding),
             gather_texels(view_maps, self.binding),

@@ -28,6 +28,7 @@ from relightanyone.model.networks.gaussians import (
     colour_output_bias,
     geometry_output_bias,
 )
+from relightanyone.model.networks.precision import run_maps
 from relightanyone.model.networks.presets import Stage1Preset
 
 CODE_INIT_STD = 0.1
@@ -80,6 +81,9 @@ class Stage1Model(nn.Module):
             preset.min_channels,
             output_bias=colour_output_bias(),
         )
+        # How the conv decoders run (set by a trainer; not part of the weights), see networks.precision.
+        self.precision = "fp32"
+        self.checkpoint_maps = False
 
     @property
     def gaussian_count(self) -> int:
@@ -111,8 +115,9 @@ class Stage1Model(nn.Module):
     def decode(self, z_id: torch.Tensor, z_l: torch.Tensor) -> tuple[torch.Tensor, Gaussians]:
         """Decode explicit codes: z_id (B, D_id), z_l (B, D_l) -> vertices (B, V, 3) and the Gaussians."""
         vertices = self.mesh_decoder(z_id)
-        geometry_maps = self.geometry_decoder(z_id)
-        colour_maps = self.colour_decoder(torch.cat([z_id, z_l], dim=1))
+        how = {"precision": self.precision, "checkpointed": self.checkpoint_maps}
+        geometry_maps = run_maps(self.geometry_decoder, z_id, **how)
+        colour_maps = run_maps(self.colour_decoder, torch.cat([z_id, z_l], dim=1), **how)
         return vertices, assemble_gaussians(geometry_maps, colour_maps, vertices, self.binding, self.spacing)
 
     def dataset_colour(self, images: torch.Tensor, dataset_index: torch.Tensor) -> torch.Tensor:

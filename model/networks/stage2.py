@@ -28,6 +28,7 @@ from torch import nn
 from relightanyone.errors import InputError
 from relightanyone.model.networks.decoders import LEAKY_SLOPE, START_RESOLUTION
 from relightanyone.model.networks.gaussians import TexelBinding, gather_texels
+from relightanyone.model.networks.precision import run_maps
 from relightanyone.model.networks.reflectance import (
     INITIAL_ALBEDO,
     VIEW_DEPENDENT_CHANNELS,
@@ -73,11 +74,11 @@ class UNetEncoder(nn.Module):
             for c_in, c_out in zip(channels[:-1], channels[1:], strict=True)
         )
 
-    def forward(self, inputs: torch.Tensor) -> list[torch.Tensor]:
+    def forward(self, inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         features = [self.stem(inputs)]
         for layer in self.down:
             features.append(layer(features[-1]))
-        return features
+        return tuple(features)
 
 
 class UNetDecoder(nn.Module):
@@ -107,7 +108,7 @@ class UNetDecoder(nn.Module):
         with torch.no_grad():
             self.output.bias.copy_(output_bias)
 
-    def forward(self, bottleneck: torch.Tensor, skips: list[torch.Tensor]) -> torch.Tensor:
+    def forward(self, bottleneck: torch.Tensor, *skips: torch.Tensor) -> torch.Tensor:
         """bottleneck (B, C_b + extra, 8, 8); skips: encoder features at S, ..., 16 -> (B, out, S, S)."""
         x = self.bottleneck(bottleneck)
         for up, fuse, skip in zip(self.up, self.fuse, reversed(skips), strict=True):
@@ -132,17 +133,26 @@ class RelightingUNet(nn.Module):
             channels, VIEW_DEPENDENT_CHANNELS, view_dependent_output_bias(), extra_channels=VIEW_CHANNELS
         )
 
-    def forward(self, inputs: torch.Tensor, view_dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self,
+        inputs: torch.Tensor,
+        view_dirs: torch.Tensor,
+        precision: str = "fp32",
+        checkpointed: bool = False,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``precision`` and ``checkpointed``: how the encoder and each decoder run
+        (:func:`~relightanyone.model.networks.precision.run_maps`; outputs are float32 either way)."""
         if inputs.shape[1:] != (INPUT_CHANNELS, self.uv_size, self.uv_size):
             raise ValueError(
                 f"stage-2 input must be (B, {INPUT_CHANNELS}, {self.uv_size}, {self.uv_size}), got {tuple(inputs.shape)}"
             )
-        features = self.encoder(inputs)
-        bottleneck, skips = features[-1], features[:-1]
+        how = {"precision": precision, "checkpointed": checkpointed}
+        features = run_maps(self.encoder, inputs, **how)
+        bottleneck, skips = features[-1], list(features[:-1])
         tiled_view = view_dirs[:, :, None, None].expand(-1, -1, *bottleneck.shape[2:])
         return (
-            self.view_independent(bottleneck, skips),
-            self.view_dependent(torch.cat([bottleneck, tiled_view], dim=1), skips),
+            run_maps(self.view_independent, bottleneck, *skips, **how),
+            run_maps(self.view_dependent, torch.cat([bottleneck, tiled_view], dim=1), *skips, **how),
         )
 
 
@@ -209,6 +219,9 @@ class Stage2Model(nn.Module):
         # positive factor on colour x albedo_per_colour, so the albedo follows the colours it is given.
         self.register_buffer("albedo_per_colour", torch.ones(3))
         self.unet = RelightingUNet(binding.uv_size, sh_order, base_channels, max_channels)
+        # How the UNet runs (set by a trainer; not part of the weights), see networks.precision.
+        self.precision = "fp32"
+        self.checkpoint_maps = False
 
     def input_maps(self, colours: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
         """E's input: full-on colours (B, N, 3) and positions (B, N, 3) -> (B, 6, S, S)."""
@@ -231,7 +244,10 @@ class Stage2Model(nn.Module):
             camera_positions: (B, 3).
         """
         view_independent, view_dependent = self.unet(
-            self.input_maps(colours, positions), view_directions(camera_positions, self.head_centre)
+            self.input_maps(colours, positions),
+            view_directions(camera_positions, self.head_centre),
+            self.precision,
+            self.checkpoint_maps,
         )
         # ρ = colour · albedo_per_colour · softplus(raw) / softplus(bias): the untrained decoder returns the
         # input texture in albedo units, and training learns the (mostly shading) factor away from it.

@@ -72,6 +72,7 @@ def run_colour_warmup(
     progress: bool = True,
     eval_views_per_dataset: int | None = None,
     views_dir: Path | None = None,
+    device: str = "auto",
 ) -> dict:
     """Warm-up into ``run_dir/warmup`` and store ``C⁻¹`` with each uncalibrated dataset.
 
@@ -94,6 +95,7 @@ def run_colour_warmup(
         warmup=True,
         progress=progress,
         eval_views_per_dataset=eval_views_per_dataset,
+        device=device,
     )
     metrics = train_stage1(config)
     is_main = not dist.is_initialized() or dist.get_rank() == 0
@@ -128,6 +130,7 @@ def align_colours(
     out: Path,
     seed: int = 0,
     eval_views_per_dataset: int | None = None,
+    device: str = "auto",
 ) -> dict:
     """The colour warm-up into ``out`` with the sources untouched (what ``relightanyone align-colour`` does).
 
@@ -149,6 +152,7 @@ def align_colours(
         seed,
         eval_views_per_dataset=eval_views_per_dataset,
         views_dir=out,
+        device=device,
     )
     for name, folder in names.items():
         if name not in uncalibrated:

@@ -75,7 +75,8 @@ def composite_over_background(
     Gaussians with brightened colours reproduce a flat-lit image; that fog then blurs every relit
     render, because each pixel mixes the shading of surface points centimetres apart.
     """
-    bg = background.to(render.dtype)[:, :, None, None]
+    # The colours are drawn on the host; they follow the render to its device and dtype.
+    bg = background.to(device=render.device, dtype=render.dtype)[:, :, None, None]
     return render + (1.0 - alpha) * bg, target * mask + bg * (1.0 - mask)
 
 
@@ -161,7 +162,9 @@ def stage1_loss(
     offset_lambda: float,
     has_mesh: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Total stage-1 loss (mean over samples) and its named terms (unweighted batch means, plus ``total``).
+    """Total stage-1 loss (mean over samples) and its named terms (unweighted batch means, plus ``total``),
+    as detached 0-d tensors: reading them is a host synchronisation, which a trainer does only when it logs
+    (:func:`as_floats`).
 
     render, target (B, 3, H, W); mask (B, 1, H, W); vertices, tracked_vertices (B, V, 3); has_mesh (B,).
     """
@@ -173,7 +176,17 @@ def stage1_loss(
     image_weights = {"l1": weights.l1, "ssim": weights.ssim}
     per_sample = weighted_sum(terms, image_weights | geometry_weights(weights, offset_lambda))
     total = per_sample.mean()
-    logged = {name: float(value.detach().mean()) for name, value in terms.items()}
-    logged["total"] = float(total.detach())
+    logged = batch_means(terms)
+    logged["total"] = total.detach()
     logged["offset_lambda"] = offset_lambda
     return total, logged
+
+
+def batch_means(terms: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Detached batch means of per-sample terms, still on their device (no host synchronisation)."""
+    return {name: value.detach().mean() for name, value in terms.items()}
+
+
+def as_floats(logged: dict[str, torch.Tensor | float]) -> dict[str, float]:
+    """Logged terms as Python floats (one host synchronisation for tensors on a GPU)."""
+    return {name: float(value) for name, value in logged.items()}

@@ -34,7 +34,7 @@ ORBIT_ELEVATION_DEG = 10.0
 
 @dataclass
 class Stage1Run:
-    """A trained run: the model (eval mode, CPU) and what it was trained on."""
+    """A trained run: the model (eval mode, on the device it was loaded to) and what it was trained on."""
 
     path: Path
     model: Stage1Model
@@ -63,8 +63,8 @@ class Stage1Run:
         return self.datasets.index(name)
 
 
-def load_run(run_dir: Path) -> Stage1Run:
-    """Rebuild the model of ``run_dir`` from its checkpoint, run.json and template copy."""
+def load_run(run_dir: Path, device: torch.device | str = "cpu") -> Stage1Run:
+    """Rebuild the model of ``run_dir`` from its checkpoint, run.json and template copy, on ``device``."""
 
     run_dir = Path(run_dir)
     info_path = run_dir / RUN_INFO_NAME
@@ -80,7 +80,7 @@ def load_run(run_dir: Path) -> Stage1Run:
         preset, template_vertices, binding, len(checkpoint["subjects"]), len(checkpoint["datasets"])
     )
     model.load_state_dict(checkpoint["model"])
-    model.eval()
+    model.to(device).eval()
     return Stage1Run(
         path=run_dir,
         model=model,
@@ -119,8 +119,11 @@ def subject_cameras(
 
 @torch.no_grad()
 def decode(run: Stage1Run, subject_index: int, lighting_index: int) -> Gaussians:
+    device = run.model.identity_codes.device
     _, gaussians = run.model(
-        torch.tensor([subject_index]), torch.tensor([lighting_index]), use_lighting=run.use_lighting
+        torch.tensor([subject_index], device=device),
+        torch.tensor([lighting_index], device=device),
+        use_lighting=run.use_lighting,
     )
     return gaussians
 
@@ -133,18 +136,22 @@ def same_geometry(a: Gaussians, b: Gaussians) -> bool:
 def mean_foreground_colour(images: torch.Tensor, alphas: torch.Tensor) -> np.ndarray:
     """Mean linear RGB over pixels with alpha > 0.5: images (C, 3, H, W), alphas (C, 1, H, W) -> (3,)."""
     weight = (alphas > FOREGROUND_ALPHA).float()
-    return ((images * weight).sum(dim=(0, 2, 3)) / weight.sum().clamp(min=1.0)).numpy()
+    return ((images * weight).sum(dim=(0, 2, 3)) / weight.sum().clamp(min=1.0)).cpu().numpy()
 
 
 @torch.no_grad()
 def render_with_alpha(gaussians: Gaussians, K: np.ndarray, w2c: np.ndarray, width: int, height: int):
     """Render one Gaussian set into C cameras given as numpy K (C, 3, 3) and w2c (C, 4, 4).
 
-    Returns images (C, 3, H, W) and alphas (C, 1, H, W).
+    Returns images (C, 3, H, W) and alphas (C, 1, H, W), on the Gaussians' device.
     """
-
+    device = gaussians.means.device
     return render_views(
-        gaussians, torch.tensor(K, dtype=torch.float32), torch.tensor(w2c, dtype=torch.float32), width, height
+        gaussians,
+        torch.tensor(K, dtype=torch.float32, device=device),
+        torch.tensor(w2c, dtype=torch.float32, device=device),
+        width,
+        height,
     )
 
 
@@ -281,11 +288,12 @@ def render_run(
     cameras: str = "dataset",
     orbit_count: int = 8,
     lighting_grid: bool = False,
+    device: torch.device | str = "cpu",
 ) -> dict:
     """What ``relightanyone render stage1`` writes into ``out``: ``subject``'s PNGs
     (:func:`render_subject`), with ``lighting_grid`` also ``lighting_grid.png``
     (:func:`lighting_alignment_grid`), and ``render_report.json``, the reports it returns."""
-    run = load_run(run_dir)
+    run = load_run(run_dir, device)
     out = Path(out)
     reports = {}
     if subject is not None:

@@ -16,6 +16,7 @@ all processes keep identical weights. Only rank 0 writes files.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import shutil
@@ -30,7 +31,10 @@ from relightanyone.align.colour import linear_to_display
 from relightanyone.errors import InputError
 from relightanyone.format.schema import TEMPLATE_NAME
 from relightanyone.locking import output_lock
+from relightanyone.format.torch_dataset import iteration_loader
+from relightanyone.model.device import loader_workers, resolve_device
 from relightanyone.model.networks.gaussians import load_template_binding
+from relightanyone.model.networks.precision import check_precision
 from relightanyone.model.networks.presets import Stage1Preset
 from relightanyone.model.networks.render import comparison_strip, render_gaussians
 from relightanyone.model.networks.stage1 import Stage1Model
@@ -42,8 +46,13 @@ from relightanyone.model.train.checkpoint import (
 )
 from relightanyone.model.train.data import Stage1Data
 from relightanyone.model.train.held_out import evaluate_held_out
-from relightanyone.model.train.losses import composite_over_background, offset_weight, stage1_loss
-from relightanyone.model.train.memory import estimate_training_memory, format_memory
+from relightanyone.model.train.losses import (
+    as_floats,
+    composite_over_background,
+    offset_weight,
+    stage1_loss,
+)
+from relightanyone.model.train.memory import StepShape, estimate_stage1, format_memory
 from relightanyone.model.train.run_files import CHECKPOINT_NAME, METRICS_NAME, RUN_INFO_NAME
 from relightanyone.model.train.sampling import background_colours, balanced_batch
 from relightanyone.progress import progress_bar
@@ -70,6 +79,9 @@ class Stage1Config:
     progress: bool = True
     evaluate: bool = True
     eval_views_per_dataset: int | None = None
+    device: str = "auto"  # a --device value: auto, cpu, cuda, cuda:1, ...
+    precision: str = "fp32"  # fp32, or bf16 for the conv decoders (networks.precision)
+    loader_workers: int | None = None  # batch loader processes (None: device.loader_workers' default)
     extra_info: dict = field(default_factory=dict)
 
 
@@ -84,20 +96,39 @@ class ProcessGroup:
         return self.rank == 0
 
 
-def setup_process_group() -> ProcessGroup:
-    """Join the torchrun process group when ``WORLD_SIZE`` > 1 (gloo on CPU, NCCL with CUDA)."""
+def setup_process_group(device_name: str = "auto") -> ProcessGroup:
+    """Join the torchrun process group when ``WORLD_SIZE`` > 1 (gloo on CPU, NCCL with CUDA).
+
+    ``device_name`` is a ``--device`` value (:func:`~relightanyone.model.device.resolve_device`); on CUDA
+    under torchrun each process takes the GPU of its ``LOCAL_RANK``.
+    """
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
-    use_cuda = torch.cuda.is_available()
+    device = resolve_device(device_name)
+    use_cuda = device.type == "cuda"
     if world_size > 1 and not dist.is_initialized():
         dist.init_process_group("nccl" if use_cuda else "gloo")
     rank = dist.get_rank() if world_size > 1 else 0
     if use_cuda:
-        local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-        torch.cuda.set_device(local_rank)
-        device = torch.device("cuda", local_rank)
-    else:
-        device = torch.device("cpu")
+        if world_size > 1 or device.index is None:
+            device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        torch.cuda.set_device(device)
     return ProcessGroup(rank=rank, world_size=world_size, device=device)
+
+
+def stage1_batch(
+    data: Stage1Data,
+    batch_size: int,
+    global_batch: int,
+    first_sample: int,
+    crop_size: int,
+    seed: int,
+    iteration: int,
+) -> dict[str, torch.Tensor]:
+    """This process's slice (samples ``first_sample`` onwards) of the global batch of ``iteration``:
+    balanced over datasets, cropped (:meth:`Stage1Data.load_batch`); a function of the iteration alone."""
+    pairs = balanced_batch(data.views_per_dataset, global_batch, seed, iteration)
+    views = [data.train_views[d][v] for d, v in pairs[first_sample : first_sample + batch_size]]
+    return data.load_batch(views, crop_size, seed, iteration, first_sample)
 
 
 def build_model(
@@ -163,7 +194,7 @@ def train_stage1(config: Stage1Config) -> dict:
     The process that writes the run folder (rank 0) holds its lock (:mod:`relightanyone.locking`) for the
     whole run, so a second run into the same folder stops at once.
     """
-    group = setup_process_group()
+    group = setup_process_group(config.device)
     with output_lock(config.out) if group.is_main else contextlib.nullcontext():
         return _train_stage1(config, group)
 
@@ -174,6 +205,7 @@ def _train_stage1(config: Stage1Config, group: ProcessGroup) -> dict:
     data = Stage1Data(config.data, preset.held_out_cameras, apply_learned_colour=not config.warmup)
     torch.manual_seed(config.seed)
     model = build_model(preset, data, config.uncalibrated, data.template_path).to(group.device)
+    model.precision = check_precision(config.precision)
     if group.world_size > 1:  # every process starts from rank 0's weights
         for tensor in list(model.parameters()) + list(model.buffers()):
             dist.broadcast(tensor.data, src=0)
@@ -198,7 +230,8 @@ def _train_stage1(config: Stage1Config, group: ProcessGroup) -> dict:
             f"{len(data.names)} datasets, {model.gaussian_count} Gaussians per subject, "
             f"{parameter_count / 1e6:.2f} M parameters, {group.world_size} process(es)"
         )
-        print(format_memory(estimate_training_memory(preset, parameter_count, model.gaussian_count)))
+        shape = StepShape(preset.batch_size, preset.crop_size)
+        print(format_memory(estimate_stage1(model, shape, config.precision)))
         if start:
             print(f"resuming {checkpoint_path} at iteration {start}")
 
@@ -219,22 +252,24 @@ def _train_stage1(config: Stage1Config, group: ProcessGroup) -> dict:
     )
     step_seconds = 0.0
     steps = 0
+    make_batch = functools.partial(
+        stage1_batch, data, preset.batch_size, global_batch, first_sample, preset.crop_size, config.seed
+    )
+    on_gpu = group.device.type == "cuda"
+    loader = iteration_loader(
+        make_batch, start, preset.iterations, loader_workers(group.device, config.loader_workers), on_gpu
+    )
+    batches = iter(loader)
     for iteration in range(start, preset.iterations):
         began = time.perf_counter()
-        pairs = balanced_batch(data.views_per_dataset, global_batch, config.seed, iteration)
-        pairs = pairs[first_sample : first_sample + preset.batch_size]
-        views = [data.train_views[d][v] for d, v in pairs]
-        batch = {
-            k: v.to(group.device)
-            for k, v in data.load_batch(views, preset.crop_size, config.seed, iteration, first_sample).items()
-        }
+        batch = {k: v.to(group.device, non_blocking=on_gpu) for k, v in next(batches).items()}
         vertices, gaussians = model(batch["subject_index"], batch["dataset_index"], use_lighting=use_lighting)
         render, alpha = render_gaussians(
             gaussians, batch["K"], batch["w2c"], preset.crop_size, preset.crop_size
         )
         if config.warmup:
             render = model.dataset_colour(render, batch["dataset_index"])
-        background = background_colours(config.seed, iteration, first_sample, len(views))
+        background = background_colours(config.seed, iteration, first_sample, preset.batch_size)
         render_bg, target_bg = composite_over_background(
             render, alpha, batch["image"], batch["mask"], torch.from_numpy(background).to(group.device)
         )
@@ -258,12 +293,15 @@ def _train_stage1(config: Stage1Config, group: ProcessGroup) -> dict:
         steps += 1
         done = iteration + 1
         progress.update(1)
-        progress.set_postfix({k: f"{terms[k]:.4g}" for k in ("total", "l1", "ssim", "geometry")})
-        if writer is not None:
-            if done % preset.log_every == 0 or done == preset.iterations:
-                for name, value in terms.items():
+        # Loss values are read back from the device only every log_every steps.
+        if done % preset.log_every == 0 or done == preset.iterations:
+            logged = as_floats(terms)
+            progress.set_postfix({k: f"{logged[k]:.4g}" for k in ("total", "l1", "ssim", "geometry")})
+            if writer is not None:
+                for name, value in logged.items():
                     writer.add_scalar(f"loss/{name}", value, done)
                 writer.add_scalar("time/seconds_per_iteration", step_seconds / steps, done)
+        if writer is not None:
             if done % preset.image_every == 0 or done == preset.iterations:
                 strip = comparison_strip(batch["image"][0], render[0].detach(), batch["mask"][0])
                 writer.add_image(
@@ -274,6 +312,7 @@ def _train_stage1(config: Stage1Config, group: ProcessGroup) -> dict:
                 checkpoint_path, _checkpoint_payload(model, optimizer, done, preset, data, config)
             )
     progress.close()
+    del batches, loader  # stops the loader's worker processes
 
     metrics = {
         "iterations": preset.iterations,

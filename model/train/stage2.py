@@ -23,6 +23,7 @@ Run folder: ``run.json``, ``checkpoint.pt`` (atomic, resumable), ``metrics.json`
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import shutil
@@ -36,9 +37,17 @@ import torch
 from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset, load_manifest
 from relightanyone.format.schema import LIGHTS_NAME, TEMPLATE_NAME, make_mesh_key
-from relightanyone.format.torch_dataset import LEARNED, NormalizedTorchDataset, collate_rows, image_hwc
+from relightanyone.format.torch_dataset import (
+    LEARNED,
+    NormalizedTorchDataset,
+    collate_rows,
+    image_hwc,
+    iteration_loader,
+)
+from relightanyone.model.device import loader_workers, resolve_device
 from relightanyone.locking import output_lock
 from relightanyone.model.networks.gaussians import load_template_binding
+from relightanyone.model.networks.precision import check_precision
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
 from relightanyone.model.networks.reflectance import (
     FULL_ON_PATTERN,
@@ -63,6 +72,8 @@ from relightanyone.model.train.checkpoint import (
     save_checkpoint,
 )
 from relightanyone.model.train.losses import (
+    as_floats,
+    batch_means,
     composite_over_background,
     geometry_terms,
     geometry_weights,
@@ -106,6 +117,10 @@ class Stage2Config:
     seed: int = 0
     resume: bool = True
     progress: bool = True
+    device: str = "auto"  # a --device value: auto, cpu, cuda, cuda:1, ...
+    precision: str = "fp32"  # fp32, or bf16 for the trained conv networks (networks.precision)
+    checkpoint_maps: bool = False  # recompute the trained networks' map activations in the backward pass
+    loader_workers: int | None = None  # batch loader processes (None: device.loader_workers' default)
     extra_info: dict = field(default_factory=dict)
 
 
@@ -241,12 +256,14 @@ class Stage2Trainer:
     def __init__(self, config: Stage2Config) -> None:
         self.config = config
         self.preset = config.preset
-        self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        self.device = resolve_device(config.device)
         torch.manual_seed(config.seed)
         if config.single_stage:
             self._build_single_stage()
         else:
             self._build_stage2()
+        self.trainable.precision = check_precision(config.precision)
+        self.trainable.checkpoint_maps = config.checkpoint_maps
         self.optimizer = torch.optim.Adam(self.trainable.parameters(), lr=self.preset.learning_rate)
         self.start = 0
 
@@ -343,12 +360,20 @@ class Stage2Trainer:
             factor = factor / max(len(self.frames.rig), 1)
         return (mean_colour / factor).clamp(min=1e-6)
 
-    def batch(self, iteration: int) -> dict[str, torch.Tensor]:
-        views = self.frames.draw(
-            self.preset.batch_size, self.preset.full_on_fraction, self.config.seed, iteration
+    def make_batch(self) -> functools.partial:
+        """The host-side batch of an iteration (:func:`olat_batch`) as a picklable function of it."""
+        preset = self.preset
+        return functools.partial(
+            olat_batch,
+            self.frames,
+            preset.batch_size,
+            preset.full_on_fraction,
+            preset.crop_size,
+            self.config.seed,
         )
-        loaded = self.frames.load_batch(views, self.preset.crop_size, self.config.seed, iteration)
-        return {k: v.to(self.device) for k, v in loaded.items()}
+
+    def batch(self, iteration: int) -> dict[str, torch.Tensor]:
+        return {k: v.to(self.device) for k, v in self.make_batch()(iteration).items()}
 
     def decode(self, batch: dict[str, torch.Tensor]):
         """(vertices (B, V, 3), Gaussians, RelightParams, camera positions (B, 3)) of a batch."""
@@ -370,8 +395,9 @@ class Stage2Trainer:
 
     def loss(
         self, batch: dict[str, torch.Tensor], iteration: int
-    ) -> tuple[torch.Tensor, dict[str, float], torch.Tensor]:
-        """Total loss (mean over samples), its unweighted terms (batch means, plus weights and ``total``), the render."""
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor | float], torch.Tensor]:
+        """Total loss (mean over samples), its unweighted terms (batch means as detached 0-d tensors, read
+        only when logged; plus the weights and ``total``), the render."""
 
         weights = self.preset.loss
         vertices, gaussians, params, cameras = self.decode(batch)
@@ -433,8 +459,8 @@ class Stage2Trainer:
             offset_lambda = offset_weight(iteration, geometry, self.stage1_preset.offset_anneal_iterations)
             per_sample = weighted_sum(terms, geometry_weights(geometry, offset_lambda), per_sample)
         total = per_sample.mean()
-        logged.update({name: float(value.detach().mean()) for name, value in terms.items()})
-        logged["total"] = float(total.detach())
+        logged.update(batch_means(terms))
+        logged["total"] = total.detach()
         return total, logged, render
 
     def resume_if_possible(self) -> None:
@@ -477,33 +503,41 @@ class Stage2Trainer:
             desc=mode,
             unit="it",
         )
-        history: list[dict[str, float]] = []
+        first = last = None
+        steps = 0
         seconds = 0.0
+        on_gpu = self.device.type == "cuda"
+        workers = loader_workers(self.device, self.config.loader_workers)
+        loader = iteration_loader(self.make_batch(), self.start, self.preset.iterations, workers, on_gpu)
+        batches = iter(loader)
         for iteration in range(self.start, self.preset.iterations):
             began = time.perf_counter()
-            total, terms, _ = self.loss(self.batch(iteration), iteration)
+            batch = {k: v.to(self.device, non_blocking=on_gpu) for k, v in next(batches).items()}
+            total, terms, _ = self.loss(batch, iteration)
             self.optimizer.zero_grad(set_to_none=True)
             total.backward()
             self.optimizer.step()
             seconds += time.perf_counter() - began
-            history.append(terms)
+            first, last, steps = first or terms, terms, steps + 1
             done = iteration + 1
             progress.update(1)
-            progress.set_postfix({k: f"{terms[k]:.4g}" for k in ("total", "l1", "ssim")})
+            # Loss values are read back from the device only every log_every steps.
             if done % self.preset.log_every == 0 or done == self.preset.iterations:
-                for name, value in terms.items():
+                logged = as_floats(terms)
+                progress.set_postfix({k: f"{logged[k]:.4g}" for k in ("total", "l1", "ssim")})
+                for name, value in logged.items():
                     writer.add_scalar(f"loss/{name}", value, done)
             if done % self.preset.checkpoint_every == 0 or done == self.preset.iterations:
                 save_checkpoint(out / CHECKPOINT_NAME, self._checkpoint(done))
         progress.close()
+        del batches, loader  # stops the loader's worker processes
         writer.close()
-        steps = len(history)
         metrics = {
             "mode": mode,
             "iterations": self.preset.iterations,
             "seconds_per_iteration": seconds / steps if steps else None,
-            "first_losses": history[0] if history else None,
-            "last_losses": history[-1] if history else None,
+            "first_losses": as_floats(first) if first else None,
+            "last_losses": as_floats(last) if last else None,
         }
         _write_json(out / METRICS_NAME, metrics)
         return metrics
@@ -537,6 +571,15 @@ class Stage2Trainer:
             "template": TEMPLATE_NAME,
             **self.config.extra_info,
         }
+
+
+def olat_batch(
+    frames: OlatFrames, batch_size: int, full_on_fraction: float, crop_size: int, seed: int, iteration: int
+) -> dict[str, torch.Tensor]:
+    """The batch of ``iteration``, on the host: views drawn (:meth:`OlatFrames.draw`) and loaded
+    (:meth:`OlatFrames.load_batch`); a function of the iteration alone."""
+    views = frames.draw(batch_size, full_on_fraction, seed, iteration)
+    return frames.load_batch(views, crop_size, seed, iteration)
 
 
 def train_stage2(config: Stage2Config) -> dict:

@@ -36,7 +36,8 @@ def fitted_avatar(
     with the same ``fingerprint``, else fitted to the subject's full-on views of ``frame`` and saved there.
 
     Args:
-        model: :class:`~relightanyone.model.fit.fitter.RelightableModel` (never changed; the fit finetunes a copy).
+        model: :class:`~relightanyone.model.fit.fitter.RelightableModel` (never changed; the fit finetunes a
+            copy on the model's device).
         fit_settings: :class:`~relightanyone.model.fit.fitter.FitSettings` (iterations, learning rates, seed).
         fingerprint: hex digest of the inputs of the fit (checkpoints, source rows, settings).
     """
@@ -49,7 +50,7 @@ def fitted_avatar(
             cached = None  # unreadable (e.g. written by another version): fit again and replace it
         if cached is not None and cached.metadata.get("expand_fingerprint") == fingerprint:
             return cached
-    views = load_fit_views(source_dir, subject, frame, None, "full", image_scale)
+    views = load_fit_views(source_dir, subject, frame, None, "full", image_scale).to(model.device)
     template = model.stage1.mesh_decoder.template_vertices
     if views.tracked_vertices is not None and views.tracked_vertices.shape != template.shape:
         raise InputError(

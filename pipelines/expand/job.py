@@ -212,6 +212,10 @@ def plan_expansion(
         raise InputError(
             f"{source_data.path}: no full-on rows of subjects {missing}; it has {', '.join(available[:20])}"
         )
+    resolved_device = str(resolve_device(device))
+    # An unknown subject is fitted on the device it is rendered on; a CUDA fit differs from a CPU one in
+    # the last bits, so its avatar is not reused across the two.
+    fit_device = {"device": "cuda"} if resolved_device.startswith("cuda") else {}
     tasks = []
     for subject in wanted:
         rows = [i for i in full_rows if columns["subject"][i] == subject]
@@ -244,6 +248,7 @@ def plan_expansion(
                         "fit_iterations": list(fit_iterations),
                         "fit_image_scale": fit_image_scale,
                         "seed": seed,
+                        **fit_device,
                     }
                 ),
             )
@@ -265,7 +270,7 @@ def plan_expansion(
         fit_iterations=(int(fit_iterations[0]), int(fit_iterations[1])),
         fit_image_scale=float(fit_image_scale),
         all_frames=all_frames,
-        device=str(resolve_device(device)),
+        device=resolved_device,
         seed=int(seed),
         lightings_per_pass=int(lightings_per_pass),
     )

@@ -25,13 +25,14 @@ from relightanyone.pipelines.expand.render import expansion_lightings, render_li
 _MODELS: dict[tuple[str, str], object] = {}  # loaded once per process (a worker runs many subjects)
 
 
-def cache_relightable_model(stage1, stage2):
-    """The :class:`~relightanyone.model.fit.fitter.RelightableModel` of two runs, loaded once per process."""
+def cache_relightable_model(stage1, stage2, device: str = "cpu"):
+    """The :class:`~relightanyone.model.fit.fitter.RelightableModel` of two runs on ``device``, loaded once
+    per process."""
 
-    key = (str(stage1), str(stage2))
+    key = (str(stage1), str(stage2), str(device))
     if key not in _MODELS:
         _MODELS.clear()
-        _MODELS[key] = load_relightable_model(stage1, stage2)
+        _MODELS[key] = load_relightable_model(stage1, stage2, device)
     return _MODELS[key]
 
 
@@ -45,7 +46,8 @@ def seed_everything(seed: int) -> None:
 
 
 def subject_avatar(settings, task, model, source):
-    """The task's avatar on the CPU: decoded (stage-1 subject) or fitted / loaded from the avatars folder."""
+    """The task's avatar: decoded (stage-1 subject) or fitted / loaded from the avatars folder; decoded and
+    fitted on the model's device."""
     import torch
 
     frame = task.frames[0]
@@ -94,7 +96,7 @@ def _render_subject(writer, settings, task, on_images) -> dict:
     start = time.perf_counter()
     seed_everything(settings.seed)
     source = NormalizedDataset(settings.source)
-    model = cache_relightable_model(settings.stage1, settings.stage2)
+    model = cache_relightable_model(settings.stage1, settings.stage2, settings.device)
     avatar = subject_avatar(settings, task, model, source).to(settings.device)
     light_rows = sorted(NormalizedDataset(model.sources["olat_dataset"]).lights(), key=lambda r: r["index"])
     lightings = expansion_lightings(

@@ -18,6 +18,9 @@ before rounding it to float32 once. :func:`collate_rows` stacks items into a bat
 A row is fetched by key from the memory-mapped shards (O(1) in the number of rows); the selection
 (filters, keys) is made once, on the small index. Shard memory maps are opened lazily in each process
 (the reader drops them on pickling), so the dataset works with ``DataLoader(num_workers > 0)``.
+
+The trainers read their batches through :func:`iteration_loader`: a ``DataLoader`` whose item is the batch
+of one iteration (:class:`IterationBatches`), made from these rows by worker processes ahead of the step.
 """
 
 from __future__ import annotations
@@ -149,3 +152,41 @@ def collate_rows(items: Sequence[dict[str, Any]]) -> dict[str, Any]:
         else:
             batch[name] = values
     return batch
+
+
+class IterationBatches(torch.utils.data.Dataset):
+    """Training batches by iteration: item ``i`` is ``make_batch(start + i)``, for ``start <= iteration < stop``.
+
+    A trainer's batch is a function of its iteration alone (its samplers are stateless and read rows
+    through :class:`NormalizedTorchDataset`), so a :func:`iteration_loader` with worker processes yields
+    exactly what a synchronous loop would, just earlier. ``make_batch`` must pickle (workers get a copy).
+    """
+
+    def __init__(self, make_batch, start: int, stop: int) -> None:
+        self.make_batch, self.start, self.stop = make_batch, int(start), int(stop)
+
+    def __len__(self) -> int:
+        return max(self.stop - self.start, 0)
+
+    def __getitem__(self, index: int) -> Any:
+        if not 0 <= index < len(self):
+            raise IndexError(index)
+        return self.make_batch(self.start + index)
+
+
+def iteration_loader(
+    make_batch, start: int, stop: int, workers: int = 0, pin_memory: bool = False, prefetch: int = 2
+) -> torch.utils.data.DataLoader:
+    """A ``DataLoader`` over :class:`IterationBatches`, in iteration order: ``workers`` processes make the
+    next batches while the current one trains (``prefetch`` batches each, workers kept between epochs);
+    ``pin_memory`` (for CUDA) puts them in page-locked memory so the copy to the GPU can overlap. With no
+    workers the batches are made in the training process, when asked for."""
+    return torch.utils.data.DataLoader(
+        IterationBatches(make_batch, start, stop),
+        batch_size=None,
+        shuffle=False,
+        num_workers=workers,
+        pin_memory=pin_memory,
+        prefetch_factor=prefetch if workers > 0 else None,
+        persistent_workers=workers > 0,
+    )

@@ -64,7 +64,7 @@ def render_with_grads(scene: dict, backend: str, dtype: torch.dtype, seed: int =
     cams = {k: scene[k].to(dtype) for k in ("w2c", "K")}
     out = rasterize(**leaves, **cams, width=scene["width"], height=scene["height"], backend=backend, **kwargs)
     g = torch.Generator().manual_seed(seed)
-    weights = [torch.rand(t.shape, generator=g, dtype=torch.float64).to(dtype) for t in out]
+    weights = [torch.rand(t.shape, generator=g, dtype=torch.float64).to(t.device, dtype) for t in out]
     loss = sum((t * w).sum() for t, w in zip(out, weights, strict=True))
     loss.backward()
     return [t.detach().double() for t in out], {k: v.grad.double() for k, v in leaves.items()}

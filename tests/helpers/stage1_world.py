@@ -263,3 +263,20 @@ def train_script(
         "stage1.train_stage1(config)",
     ]
     return "\n".join(lines) + "\n"
+
+
+def sphere_template_binding(folder: Path, uv_size: int):
+    """Template vertices (V, 3) float32 and the texel binding of the UV sphere (one seam) at ``uv_size``,
+    written to ``folder/template.obj`` and read back."""
+    import torch
+
+    from relightanyone.model.networks.gaussians import TexelBinding
+    from relightanyone.render.mesh import load_obj
+    from relightanyone.render.uv_binding import UVBinding
+
+    path = Path(folder) / "template.obj"
+    path.write_text(sphere_obj()[1])
+    mesh = load_obj(path)
+    uv = UVBinding.from_mesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.face_uvs, uv_size)
+    binding = TexelBinding.from_maps(uv.face_index, uv.barycentrics, uv.valid, uv.faces)
+    return torch.as_tensor(mesh.vertices, dtype=torch.float32), binding
