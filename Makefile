@@ -6,9 +6,10 @@ PY := $(VENV)/bin/python
 TORCH_VERSION ?= 2.13.0
 PRESET ?= tiny
 DEMO_OUT ?= demo-out
+REFERENCE_OUT ?= reference-out
 PYTEST_ARGS ?=
 
-.PHONY: test demo bench lint env clean
+.PHONY: test demo reference bench lint env clean
 
 $(VENV)/.stamp-torch:
 	$(PYTHON) -m venv $(VENV)
@@ -27,6 +28,11 @@ test: $(VENV)/.stamp-dev
 
 demo: $(VENV)/.stamp-dev
 	$(VENV)/bin/relightanyone run pipelines/demo.yaml --var out=$(DEMO_OUT) --var preset=$(PRESET)
+
+# The reference evaluation: the demo pipeline on the `reference` world, every test subject scored.
+reference: $(VENV)/.stamp-dev
+	$(VENV)/bin/relightanyone run pipelines/demo.yaml --var out=$(REFERENCE_OUT) --var preset=reference \
+		--var eval_subjects=0
 
 bench: $(VENV)/.stamp-dev
 	$(PY) bench/loader.py

@@ -17,6 +17,10 @@ Measures, in one run on the same images:
   three such pairs) is about the most two workers could reach over one;
 * ``mask_methods``: milliseconds per mesh-silhouette mask, compiled depth buffer vs ray casting, at the
   crop sizes of the presets (the ingest uses the depth buffer);
+* ``checks``: the convention checks' own CPU time (the checks without pixels and the image check of every
+  view, decoding not counted: the tasks judge images they decode anyway) over the CPU time of a warm
+  1-worker ingest of the same views in this process, ``checks_cost_fraction`` (goal < 0.1); also per
+  preset of ``full_size``;
 * ``full_size``: bare loop and warm 1-worker ingest of a smaller world whose Ava-256 images have the real
   dataset's size (667×1024), cropped to the ``small`` (512²) and ``paper`` (1024²) sizes: where the costs
   go when images are as large as real ones.
@@ -136,6 +140,7 @@ def full_size(world: Path) -> dict:
             "end_to_end_1_worker": one,
             "end_to_end_over_bare_loop": round(one["images_per_s"] / bare["images_per_s"], 3),
         }
+        runs[preset]["checks"] = checks_cost(plan, world, preset)
         print(f"full size, {preset} crops: ratio {runs[preset]['end_to_end_over_bare_loop']}", flush=True)
     return {"world": str(world), "source_size": [667, 1024], "views": plan.view_count, "presets": runs}
 
@@ -269,6 +274,53 @@ def warm_end_to_end(plan, world: Path, workers: int, preset: str = PRESET, repea
     return median_run(runs, "seconds") if repeats > 1 else runs[0]
 
 
+def checks_cost(plan, world: Path, preset: str = PRESET) -> dict:
+    """CPU seconds of the convention checks on ``plan`` against the CPU seconds of its 1-worker ingest (in
+    this process, warm), both measured on the same views: the checks without pixels (run once, before
+    writing) plus the image check of every view (run by the tasks on images they decode anyway, so
+    decoding is not counted). CPU time, not wall time: on a loaded machine the wall time of a short step
+    mostly measures the other processes."""
+    from relightanyone.ingest.checks import ImageCheck, check_tasks, view_item
+    from relightanyone.ingest.decode import TaskDecoder
+    from relightanyone.ingest.runner import ingest_dataset, prepare
+    from relightanyone.ingest.subject_task import FrameMesh, canonical_mesh
+
+    template_path = world / "answers" / "template" / "template.obj"
+    tracking = world / "tracking" / "d2"
+    with tempfile.TemporaryDirectory(prefix="ingest-bench-") as out:
+        ingest_dataset(plan, tracking, Path(out) / "warm", preset, progress=False, template=template_path)
+        start = time.process_time()
+        ingest_dataset(plan, tracking, Path(out) / "timed", preset, progress=False, template=template_path)
+        ingest_cpu = time.process_time() - start
+    _, template, tasks = prepare(plan, tracking, preset, template_path)
+    start = time.process_time()
+    report = check_tasks(tasks, template)
+    without_pixels = time.process_time() - start
+    images = 0.0
+    for task in tasks:
+        with TaskDecoder(plan.source_root) as decoder:
+            decoded = [(view, decoder.decode(view.image)[0]) for view in task.plan.views]
+        # The frames' silhouettes are the task's own (it masks every row with them): not a cost of the checks.
+        silhouettes = {
+            frame: FrameMesh.from_vertices(canonical_mesh(alignment, template), template).silhouette
+            for frame, alignment in task.alignments.items()
+        }
+        start = time.process_time()
+        check = ImageCheck(task, silhouettes)
+        for view, image in decoded:
+            check.holds(view, view_item(view), image)
+        check.decide()
+        images += time.process_time() - start
+    return {
+        "views": plan.view_count,
+        "findings": len(report.findings),
+        "cpu_seconds_without_pixels": round(without_pixels, 4),
+        "cpu_seconds_image_check": round(images, 4),
+        "cpu_seconds_ingest": round(ingest_cpu, 4),
+        "checks_cost_fraction": round((without_pixels + images) / ingest_cpu, 4),
+    }
+
+
 def median_run(runs: list[dict], key: str) -> dict:
     """The run of median ``key``, with every run's ``key`` under ``<key>_of_every_run`` (sorted)."""
     ordered = sorted(runs, key=lambda r: r[key])
@@ -334,6 +386,11 @@ def main() -> None:
     parser.add_argument("--world", type=Path, default=DEFAULT_WORLD)
     parser.add_argument("--full-size-world", type=Path, default=FULL_SIZE_WORLD)
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "ingest.json")
+    parser.add_argument(
+        "--checks-only",
+        action="store_true",
+        help="measure only the bare loop, the 1-worker ingest and the checks' cost; write nothing",
+    )
     parser.add_argument("--child", type=int, nargs=2, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--bare-child", type=float, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -353,6 +410,11 @@ def main() -> None:
     print(f"bare loop: {bare['images_per_s']} images/s", flush=True)
     one = warm_end_to_end(plan, args.world, 1, repeats=END_TO_END_REPEATS)
     print(f"end to end, 1 worker: {one['images_per_s']} images/s", flush=True)
+    checks = checks_cost(plan, args.world)
+    print(f"convention checks: {checks['checks_cost_fraction']} of the ingest's time", flush=True)
+    if args.checks_only:
+        print(json.dumps(checks, indent=2))
+        return
     two = warm_end_to_end(plan, args.world, 2, repeats=END_TO_END_REPEATS)
     print(f"end to end, 2 workers: {two['images_per_s']} images/s", flush=True)
     subjects = len(plan.subjects)
@@ -384,10 +446,13 @@ def main() -> None:
             "two_workers_over_one": round(two["images_per_s"] / one["images_per_s"], 3),
             "goal_two_workers_over_one": 1.7,
             "bare_loop_two_processes_over_one": ceiling["sum_over_one"],
+            "checks_cost_fraction": checks["checks_cost_fraction"],
+            "goal_checks_cost_fraction": 0.1,
             "cold_two_workers_over_one": round(
                 cold[0]["seconds_with_imports"] / cold[1]["seconds_with_imports"], 3
             ),
         },
+        "checks": checks,
         "parallel_ceiling": ceiling,
         "peak_memory": memory,
         "mask_methods": masks,

@@ -2,12 +2,16 @@
 
 Compares 16-bit PNG, half-float EXR and raw float16 under the shards' Arrow IPC zstd compression on linear
 1024x1024 face-like images (smooth shading, a highlight, sensor noise, black background, about half the
-frame covered). Writes ``bench/results/loader.json`` with machine info. Run: ``python bench/loader.py``.
+frame covered). Also measures what the per-row checksum costs a read: every row read is checked against
+its xxh3-64 checksum (and its Arrow buffers validated); the same reads without those checks, interleaved
+with them, give the overhead, and the candidate hashes are timed on the same bytes. Writes
+``bench/results/loader.json`` with machine info. Run: ``python bench/loader.py``.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -15,14 +19,27 @@ import statistics
 import sys
 import tempfile
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import torch
+import xxhash
 
+from relightanyone.format.arrow_io import read_batch_at
 from relightanyone.format.codecs import decode_image, decode_mask, encode_image, encode_mask
 from relightanyone.format.examples import face_like_image
-from relightanyone.format.schema import DatasetInfo, Provenance, build_image_row
+from relightanyone.format.reader import NormalizedDataset
+from relightanyone.format.schema import (
+    IMAGE_SCHEMA,
+    ROW_COLUMNS,
+    DatasetInfo,
+    ImageRow,
+    Provenance,
+    build_image_row,
+    row_checksum,
+)
 from relightanyone.format.shards import ShardWriter
 from relightanyone.format.torch_dataset import NormalizedTorchDataset, collate_rows
 from relightanyone.render.camera import look_at_w2c
@@ -76,12 +93,60 @@ def _write_dataset(root: Path, encoding: str, images: list[np.ndarray], masks: l
 
 def _fetch_decode_ms(dataset_dir: Path, repeats: int) -> dict[str, float]:
     """Time to read one row by key from the memory-mapped shard and decode its image and mask."""
-    from relightanyone.format.reader import NormalizedDataset
-
     dataset = NormalizedDataset(dataset_dir)
     keys = dataset.keys
     dataset.decoded(keys[0])  # map the shard once
     return _best_ms(lambda: [dataset.decoded(key) for key in keys], repeats)[0] | {"rows": len(keys)}
+
+
+def _decoded_unverified(dataset: NormalizedDataset, key: str) -> tuple:
+    """``dataset.decoded(key)`` without the row's checks (Arrow buffer validation, checksum): the read
+    as it was before rows carried a checksum."""
+    position = dataset.position(key)
+    shard, offset = int(dataset._shard_column[position]), int(dataset._offset_column[position])
+    values = read_batch_at(dataset._map(shard), offset, IMAGE_SCHEMA).to_pylist()[0]
+    row = ImageRow(**{c.name: c.from_arrow(values[c.name]) for c in ROW_COLUMNS})
+    return row, decode_image(row.image, row.image_encoding), decode_mask(row.mask)
+
+
+def _checksum_cost(dataset_dir: Path, rounds: int) -> dict:
+    """Fetch + decode of every row with and without the per-row checks, the two reads of each row
+    alternating, ``rounds`` times: per row the best of each (a shared machine disturbs single reads), then
+    the mean over rows. Also the candidate hashes timed on one row's image, mask and valid bytes."""
+    dataset = NormalizedDataset(dataset_dir)
+    keys = dataset.keys
+    dataset.decoded(keys[0])
+    reads = {"verified": dataset.decoded, "unverified": lambda k: _decoded_unverified(dataset, k)}
+    best = {name: [float("inf")] * len(keys) for name in reads}
+    for _ in range(rounds):
+        for n, key in enumerate(keys):
+            for name, read in reads.items():
+                start = time.process_time()
+                read(key)
+                best[name][n] = min(best[name][n], (time.process_time() - start) * 1000.0)
+    verified, unverified = (statistics.mean(best[name]) for name in ("verified", "unverified"))
+    row = dataset.row(keys[0])
+    values = row.to_arrow_dict()
+    data = row.image + row.mask + row.valid
+    hashes = {
+        "xxh3_64 of every column (chosen)": lambda: row_checksum(values),
+        "zlib.crc32": lambda: zlib.crc32(data),
+        "blake2b, 8-byte digest": lambda: hashlib.blake2b(data, digest_size=8).digest(),
+    }
+    batch = dataset.record_batch(keys[0])
+    hash_ms = {name: _best_ms(f, 20)[0]["cpu_ms"] for name, f in hashes.items()}
+    return {
+        "encoding": row.image_encoding,
+        "row_bytes_hashed": len(data),
+        "cpu_ms_per_row_verified": verified,
+        "cpu_ms_per_row_unverified": unverified,
+        "overhead_percent": 100.0 * (verified - unverified) / unverified,
+        "hash_ms_per_row": hash_ms,
+        "arrow_validate_ms_per_row": _best_ms(lambda: batch.validate(full=True), 20)[0]["cpu_ms"],
+        "hashing_percent_of_unverified_read": {name: 100.0 * ms / unverified for name, ms in hash_ms.items()},
+        "xxhash": xxhash.VERSION,
+        "pyarrow": pa.__version__,
+    }
 
 
 def _loader_rows_per_s(dataset_dir: Path, num_workers: int, epochs: int) -> float:
@@ -110,6 +175,7 @@ def main() -> None:
     parser.add_argument("--images", type=int, default=16)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--loader-rounds", type=int, default=2)
+    parser.add_argument("--checksum-rounds", type=int, default=7)
     parser.add_argument("--out", type=Path, default=RESULT)
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -138,6 +204,8 @@ def main() -> None:
                 "max_abs_error": float(np.abs(decoded - images[0]).max()),
                 "p99_relative_error_on_mask": float(np.percentile(relative, 99)),
             }
+        checksum = _checksum_cost(dataset_dirs["raw-f16"], args.checksum_rounds)
+        print("row checksum", json.dumps(checksum, indent=1), flush=True)
         mask_png = encode_mask(masks[0])
         mask_timing = {
             "bytes": len(mask_png),
@@ -176,6 +244,7 @@ def main() -> None:
             "load_average_1_5_15_min_at_end": list(os.getloadavg()),
         },
         "mask_png": mask_timing,
+        "row_checksum": checksum,
         "results": results,
         "least_cpu_per_row": fastest,
         "smallest_on_disk": smallest,

@@ -49,6 +49,14 @@ from relightanyone.cli_options import (
 @out_option("Output folder.")
 @fit_iterations_option((100, 100), "Inversion and finetuning iterations of every fit.")
 @click.option(
+    "--split",
+    type=click.Choice(["test", "val"]),
+    default="test",
+    show_default=True,
+    help="Held-out split scored: test (the reported numbers) or val (model selection and tuning). "
+    "Subjects any run trained on are refused.",
+)
+@click.option(
     "--subjects",
     type=click.IntRange(min=0),
     default=1,
@@ -94,6 +102,7 @@ def evaluate_command(
     single_stage: Path | None,
     out: Path,
     fit_iterations: tuple[int, int],
+    split: str,
     subjects: int,
     max_views: int,
     lights_subset: int,
@@ -129,13 +138,17 @@ def evaluate_command(
         lights_subset=lights_subset or None,
         envmaps=envmaps or None,
         subjects_per_dataset=subjects or None,
+        split=split,
         views_per_step=views_per_step,
         seed=seed,
         progress=not quiet,
         device=str(resolve_device(device)),
     )
     results = run_evaluation(inputs, settings, out, json_copy)
-    click.echo(f"wrote {out / 'report.md'} and {out / 'evaluation.json'}")
+    click.echo(
+        f"wrote {out / 'report.md'} and {out / 'evaluation.json'} ({results['run_kind']}, "
+        f"protocol {results['protocol_sha256'][:12]})"
+    )
     for claim, value in results.get("goals", {}).items():
         click.echo(f"  {claim}: {'not evaluated' if value is None else ('yes' if value else 'NO')}")
 

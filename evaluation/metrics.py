@@ -1,5 +1,16 @@
-"""Image metrics of the evaluation: the toolkit's masked PSNR, RMSE and SSIM (:mod:`relightanyone.model.metrics`),
-and LPIPS when it is available locally. Images are ``(B, 3, H, W)`` float32, masks ``(B, 1, H, W)`` in [0, 1].
+"""Image metrics of the evaluation: the toolkit's masked PSNR, RMSE and SSIM
+(:mod:`relightanyone.model.metrics`) in linear RGB and in sRGB display space, and LPIPS when its backbone
+is available offline. Images are ``(B, 3, H, W)`` float32 scene-linear, masks ``(B, 1, H, W)`` in [0, 1].
+
+* **Linear**: both images clipped to [0, 1], compared inside the mask (PSNR peak 1, RMSE, SSIM with an
+  11×11 Gaussian window over the binary mask ``mask > 0.5``).
+* **sRGB** (suffix ``_srgb``): the same metrics on the display encoding of the clipped images
+  (:func:`relightanyone.align.colour.linear_to_srgb`, the toolkit's one display conversion). Dark OLAT
+  images differ by little in linear values; the display encoding weighs shadows as a viewer sees them.
+* **LPIPS** (AlexNet, torchmetrics' implementation through torchvision) on the sRGB images with the
+  background set to 0, computed only when torchmetrics and torchvision import and the AlexNet weights
+  are already in the local torch cache; nothing is downloaded. Otherwise :func:`lpips_status` gives the
+  reason, which the evaluation records.
 """
 
 from __future__ import annotations
@@ -12,32 +23,57 @@ import torch
 from relightanyone.align.colour import linear_to_srgb
 from relightanyone.model.metrics import check_metric_inputs, masked_psnr, masked_rmse, masked_ssim
 
+LINEAR_METRICS = ("psnr", "rmse", "ssim")
+SRGB_SUFFIX = "_srgb"
+WEIGHTS_MISSING = "skipped: backbone weights not available offline"
 
-def lpips_status() -> tuple[bool, str]:
-    """(available, reason): LPIPS needs the ``lpips`` package and its AlexNet weights already on disk."""
-    if importlib.util.find_spec("lpips") is None:
-        return False, "LPIPS skipped: the `lpips` package is not installed"
-    checkpoints = Path(torch.hub.get_dir()) / "checkpoints"
-    if not any(checkpoints.glob("alexnet-*.pth")):
-        return False, f"LPIPS skipped: no AlexNet weights under {checkpoints} (nothing is downloaded)"
-    return True, "LPIPS (AlexNet, lpips package)"
+
+def lpips_import_problem() -> str | None:
+    """Why LPIPS cannot run here (a missing or broken torchmetrics / torchvision), or None."""
+    for package in ("torchmetrics", "torchvision"):
+        if importlib.util.find_spec(package) is None:
+            return f"skipped: {package} is not installed"
+    try:
+        import torchvision  # noqa: F401  (deferred: a torchvision built for another torch fails here)
+    except Exception as error:  # a binary mismatch raises anything from ImportError to RuntimeError
+        return f"skipped: torchvision does not import beside this torch ({type(error).__name__})"
+    return None
+
+
+def alexnet_weights(checkpoints: Path) -> list[Path]:
+    """The torchvision AlexNet weights already in a torch hub cache folder."""
+    return sorted(Path(checkpoints).glob("alexnet-*.pth"))
+
+
+def lpips_status(checkpoints: Path | None = None) -> tuple[bool, str]:
+    """(available, what the evaluation records): LPIPS runs only with its backbone already on disk."""
+    problem = lpips_import_problem()
+    if problem is not None:
+        return False, problem
+    if not alexnet_weights(checkpoints or Path(torch.hub.get_dir()) / "checkpoints"):
+        return False, WEIGHTS_MISSING
+    return True, "LPIPS: AlexNet through torchvision, as torchmetrics computes it, on sRGB images"
 
 
 class LpipsMetric:
     """Masked LPIPS on sRGB-encoded images; construct only when :func:`lpips_status` says available."""
 
     def __init__(self) -> None:
-        import lpips
+        # Deferred: torchmetrics is optional and only imported when its backbone is known to be cached.
+        from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
 
-        self.network = lpips.LPIPS(net="alex", verbose=False).eval().requires_grad_(False)
+        self.network = LearnedPerceptualImagePatchSimilarity(net_type="alex", normalize=True).eval()
 
     @torch.no_grad()
     def __call__(self, prediction: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         check_metric_inputs(prediction, target, mask)
         binary = (mask > 0.5).to(prediction.dtype)
-        # LPIPS was trained on display images in [-1, 1].
-        to_input = lambda x: linear_to_srgb(x.clamp(0, 1) * binary) * 2 - 1  # noqa: E731
-        return self.network(to_input(prediction), to_input(target)).reshape(-1)
+        display = lambda x: linear_to_srgb(x.clamp(0, 1)) * binary  # noqa: E731
+        scores = []
+        for p, t in zip(display(prediction), display(target), strict=True):
+            scores.append(self.network(p[None].clamp(0, 1), t[None].clamp(0, 1)).reshape(()))
+            self.network.reset()
+        return torch.stack(scores)
 
 
 def image_metrics(
@@ -46,12 +82,15 @@ def image_metrics(
     mask: torch.Tensor,
     lpips_metric: LpipsMetric | None = None,
 ) -> dict[str, torch.Tensor]:
-    """psnr, rmse, ssim (and lpips with a metric object) per image -> dict of (B,) tensors."""
-    scores = {
-        "psnr": masked_psnr(prediction, target, mask),
-        "rmse": masked_rmse(prediction, target, mask),
-        "ssim": masked_ssim(prediction, target, mask),
-    }
+    """psnr, rmse, ssim in linear RGB, the same with suffix ``_srgb`` in display space (and lpips with a
+    metric object) per image -> dict of (B,) tensors."""
+    linear = (prediction.clamp(0, 1), target.clamp(0, 1))
+    display = tuple(linear_to_srgb(x) for x in linear)
+    scores = {}
+    for suffix, (p, t) in (("", linear), (SRGB_SUFFIX, display)):
+        scores[f"psnr{suffix}"] = masked_psnr(p, t, mask)
+        scores[f"rmse{suffix}"] = masked_rmse(p, t, mask)
+        scores[f"ssim{suffix}"] = masked_ssim(p, t, mask)
     if lpips_metric is not None:
         scores["lpips"] = lpips_metric(prediction, target, mask)
     return scores

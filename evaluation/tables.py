@@ -40,6 +40,7 @@ from relightanyone.evaluation.cases import (
 )
 from relightanyone.evaluation.metrics import LpipsMetric, image_metrics, lpips_status
 from relightanyone.evaluation.single_stage import SingleStageFitter, load_single_stage_run
+from relightanyone.evaluation.splits import refuse_trained_subjects, runs_that_trained, training_runs
 from relightanyone.evaluation.truth import WorldAnswers
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import make_mesh_key
@@ -66,6 +67,7 @@ class EvaluationSettings:
     lights_subset: int | None = 16  # OLAT lights compared (evenly spread rig indices)
     envmaps: int | None = None  # environment maps compared (all when None)
     subjects_per_dataset: int | None = 1  # held-out subjects per dataset (all when None)
+    split: str = "test"  # the held-out split scored: "test" (reported numbers) or "val" (model selection)
     views_per_step: int = 4
     seed: int = 0
     progress: bool = True
@@ -138,14 +140,16 @@ def first_frame_rows(rows: NormalizedTorchDataset) -> dict[int, str]:
     }
 
 
-def test_subjects(inputs: EvaluationInputs, world_name: str, limit: int | None) -> list[str]:
-    """Held-out subjects: the world's splits when answers are given, else the rows' "test" split."""
+def test_subjects(
+    inputs: EvaluationInputs, world_name: str, limit: int | None, split: str = "test"
+) -> list[str]:
+    """Held-out subjects of ``split``: the world's splits when answers are given, else the rows' split."""
 
     dataset = NormalizedDataset(inputs.datasets[world_name])
     if inputs.answers is not None and world_name in inputs.answers.splits:
-        names = [s for s in inputs.answers.test_subjects(world_name) if s in dataset.subjects]
+        names = [s for s in inputs.answers.subjects_in(world_name, split) if s in dataset.subjects]
     else:
-        names = sorted(set(NormalizedTorchDataset(dataset, splits="test").column("subject")))
+        names = sorted(set(NormalizedTorchDataset(dataset, splits=split).column("subject")))
     return names if limit is None else names[:limit]
 
 
@@ -232,6 +236,20 @@ class Evaluation:
 
         self.inputs = inputs
         self.settings = settings
+        self.training_runs = training_runs(
+            inputs.stage1, inputs.stage2, inputs.single_stage, list(inputs.datasets.values())
+        )
+        held_out = [
+            f"{NormalizedDataset(path).name}/{subject}"
+            for world_name, path in sorted(inputs.datasets.items())
+            for subject in self.held_out_subjects(world_name)
+        ]
+        refuse_trained_subjects(settings.split, held_out, self.training_runs)
+        if not held_out:
+            raise InputError(
+                f"no {settings.split} subjects in the evaluated datasets {sorted(inputs.datasets)}; "
+                f"the world's or the rows' splits give none (choose another --split)"
+            )
         self.device = torch.device(settings.device)
         self.model = load_relightable_model(inputs.stage1, inputs.stage2, self.device)
         self.single = None
@@ -354,7 +372,7 @@ class Evaluation:
     def table1_and_2(self) -> None:
         world_name = self.olat_world
         table1, table2 = {}, {}
-        for subject in test_subjects(self.inputs, world_name, self.settings.subjects_per_dataset):
+        for subject in self.held_out_subjects(world_name):
             key = f"{world_name}/{subject}"
             cameras, frontal = subject_cameras(
                 self.inputs.datasets[world_name], subject, self.settings.max_views
@@ -449,7 +467,7 @@ class Evaluation:
                     decoded_avatar(self.model, index, tracked, {}),
                     decoded_avatar(without, index, tracked, {}),
                 )
-            for subject in test_subjects(self.inputs, world_name, self.settings.subjects_per_dataset):
+            for subject in self.held_out_subjects(world_name):
                 cameras, _ = subject_cameras(path, subject, self.settings.max_views)
                 fitted[f"{world_name}/{subject}"] = self._ablation_entry(
                     world_name,
@@ -487,26 +505,14 @@ class Evaluation:
 
         return list(load_checkpoint(Path(self.inputs.stage1) / CHECKPOINT_NAME)["subjects"])
 
-    def seen_in_training(self, world_name: str, subject: str) -> list[str]:
-        """Runs whose training subjects include this one (then it is not held out; the report says so)."""
-        import json
+    def held_out_subjects(self, world_name: str) -> list[str]:
+        """The evaluated subjects of the settings' held-out split in one world dataset."""
+        return test_subjects(self.inputs, world_name, self.settings.subjects_per_dataset, self.settings.split)
 
-        name = f"{NormalizedDataset(self.inputs.datasets[world_name]).name}/{subject}"
-        runs = {
-            "stage 1": self.inputs.stage1,
-            "stage 2": self.inputs.stage2,
-            "single-stage": self.inputs.single_stage,
-        }
-        seen = []
-        for label, run in runs.items():
-            info_path = None if run is None else Path(run) / RUN_INFO_NAME
-            if info_path is not None and info_path.is_file():
-                info = json.loads(info_path.read_text())
-                # A stage-2 run lists every stage-1 subject (its code order) but trains on one dataset.
-                trained_on = info.get("dataset", {}).get("name") if info.get("stage") == "stage2" else None
-                if name in info.get("subjects", []) and trained_on in (None, name.split("/", 1)[0]):
-                    seen.append(label)
-        return seen
+    def seen_in_training(self, world_name: str, subject: str) -> list[str]:
+        """Labels of the runs that trained on this subject (Table 3's decoded training subjects)."""
+        key = f"{NormalizedDataset(self.inputs.datasets[world_name]).name}/{subject}"
+        return [run.label for run in runs_that_trained(key, self.training_runs)]
 
     def _stage1_dataset_names(self) -> list[str]:
         import json

@@ -70,11 +70,11 @@ class WorldAnswers:
     def datasets(self) -> list[str]:
         return sorted(self.splits)
 
-    def test_subjects(self, dataset: str) -> list[str]:
-        """Held-out subjects of a world dataset (``answers/splits.json``)."""
+    def subjects_in(self, dataset: str, split: str) -> list[str]:
+        """Subjects of a world dataset in one split (``answers/splits.json``): train, val or test."""
         if dataset not in self.splits:
             raise InputError(f"{self.root / 'splits.json'}: no dataset {dataset!r}; it has {self.datasets}")
-        return sorted(s for s, split in self.splits[dataset].items() if split == "test")
+        return sorted(s for s, role in self.splits[dataset].items() if role == split)
 
     def cameras(self, dataset: str) -> dict[str, NativeCamera]:
         """Native cameras of a world dataset (``answers/<dataset>/truth.json``)."""

@@ -12,11 +12,13 @@ Layout read (the Ava-256 release, ``docs/ingest.md``; one capture = one subject)
 
 Conventions:
 
-* Cameras: ``read_krt_json`` (transposes, mm -> m). K describes the full sensor while the images are an
-  integer factor smaller: the factor is the one that maps the stored image size onto the 2668x4096
-  sensor when it does, else the one the rig's principal points imply (they sit near the sensor centre);
-  K is then rescaled to the stored size with the half-pixel rule. The image size is read from the
-  first readable member of each camera's zip (header only).
+* Cameras: ``read_krt_json`` (transposes, mm -> m). K describes the full 2668x4096 sensor (or
+  ``--sensor-size``) while the images are a downscale of it: the factor comes from the stored image size
+  against the sensor size on both axes (``ingest.calibration.downsample_factor``; the principal points,
+  off-centre on the real rig, only check it), and K is resized to the stored size with the half-pixel
+  rule. The image size is read from the first readable member of each camera's zip (header only).
+* The native->tracker fit uses every calibrated camera (``SubjectPlan.rig_w2c``), whatever ``--cameras``
+  keeps and whatever images a frame lacks.
 * Each frame's head pose is folded into the extrinsics (``align.geometry.fold_head_pose``), so a view's
   native world is the capture's head space in metres: the head never moves.
 * Frames: the ``EXP_neutral_peak`` rows of ``frame_list.csv`` by default; every listed frame with
@@ -34,7 +36,6 @@ import csv
 import io
 import re
 import zipfile
-from dataclasses import replace
 from pathlib import Path, PurePosixPath
 
 import numpy as np
@@ -45,6 +46,7 @@ from relightanyone.ingest.adapter_common import adapter_plan, root_relative
 from relightanyone.ingest.calibration import (
     AVA_FULL_SENSOR,
     CalibrationError,
+    Downscale,
     downsample_factor,
     read_krt_json,
 )
@@ -201,8 +203,6 @@ def _scan_camera_zip(path: Path) -> tuple[dict[int, str], tuple[int, int] | None
 
 def _plan_capture(capture: Path, root: Path, options: AdapterOptions) -> SubjectPlan:
     """Views and refusals of one capture folder."""
-    import torch
-
     subject = subject_of(capture)
     plan = SubjectPlan(subject=subject, split=options.split_of(subject), views=[])
     relpath = root_relative(capture, root)
@@ -266,20 +266,27 @@ def _plan_capture(capture: Path, root: Path, options: AdapterOptions) -> Subject
     if not scans:
         return plan
 
-    K_sensor = rig.K.numpy()
-    first_size = next(iter(scans.values()))[2]
-    try:
-        factor = downsample_factor(K_sensor, first_size, AVA_FULL_SENSOR)
-    except ValueError as error:
-        plan.refusals.append(Refusal(subject, relpath(CALIBRATION), str(error)))
-        return plan
+    plan.rig_w2c = {name: rig.w2c[i].numpy().astype(np.float64) for i, name in enumerate(rig.names)}
+    plan.head_poses = poses
+    sensor = options.sensor_size or AVA_FULL_SENSOR
+    downscales: dict[tuple[int, int], Downscale] = {}
     colour = ColourCalibration.identity()
     for index, (camera, members, size) in scans.items():
         one = rig[index]
-        one = replace(
-            one, width=torch.tensor([size[0] * factor]), height=torch.tensor([size[1] * factor])
-        ).resize(size)
-        K, w2c_world, dist = one.K[0].numpy(), one.w2c[0].numpy(), one.dist[0, :5].numpy()
+        if size not in downscales:
+            try:  # the principal points of the whole rig check the factor of every image size
+                downscales[size] = downsample_factor(rig.K.numpy(), size, sensor)
+            except ValueError as error:
+                plan.refusals.append(
+                    Refusal(f"{subject}/{camera}", relpath(f"{IMAGE_DIR}/cam{camera}.zip"), str(error))
+                )
+                continue
+        downscale = downscales[size]
+        K, w2c_world, dist = (
+            downscale.intrinsics(one.K[0].numpy()),
+            one.w2c[0].numpy(),
+            one.dist[0, :5].numpy(),
+        )
         source = relpath(f"{IMAGE_DIR}/cam{camera}.zip")
         for frame in frames:
             if not options.keeps_frame(frame) or frame not in poses:
@@ -308,6 +315,10 @@ def _plan_capture(capture: Path, root: Path, options: AdapterOptions) -> Subject
                     source=f"{source}::{members[frame]}",
                 )
             )
+    plan.found["downscale"] = sorted(
+        f"{d.image[0]}x{d.image[1]} = {d.sensor[0]}x{d.sensor[1]} sensor / {d.factor:g}"
+        for d in downscales.values()
+    )
     return plan
 
 
@@ -341,6 +352,7 @@ def plan(src: Path, options: AdapterOptions) -> DatasetPlan:
         "cameras": sorted({v.camera.name for s in subjects for v in s.views}),
         "frames": {s.subject: sorted({v.frame for v in s.views}) for s in subjects},
         "views": sum(len(s.views) for s in subjects),
+        "image_size (downscale)": sorted({d for s in subjects for d in s.found.get("downscale", [])}),
         "frame_selection": "listed ids"
         if options.frames is not None
         else ("all" if options.all_frames else NEUTRAL_SEGMENT),

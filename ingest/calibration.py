@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -17,14 +18,12 @@ import numpy as np
 import torch
 
 from relightanyone.errors import InputError
-from relightanyone.render.camera import Cameras
+from relightanyone.render.camera import Cameras, resize_intrinsics
 
 # Full-sensor size of the Ava-256 / Goliath rig (width, height); the Ava loaders hard-code it.
 AVA_FULL_SENSOR = (2668, 4096)
 # Full-resolution NeRSemble frames (width, height).
 NERSEMBLE_FULL_SENSOR = (2200, 3208)
-# The principal-point-implied downsample factor must be this close to an integer.
-FACTOR_TOLERANCE = 0.35
 # Metres per unit for the length units a calibration file may use.
 UNIT_TO_METRES = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
 # Rotations stored in text with ~7 significant digits are orthonormal to ~1e-6; anything worse is corrupt.
@@ -432,23 +431,71 @@ def _colmap_intrinsics(model: str, p: np.ndarray, path: str, field: str) -> tupl
     return _intrinsics(K, path, f"{field}.params"), dist
 
 
-def downsample_factor(K_sensor: np.ndarray, image_size: tuple[int, int], sensor_size: tuple[int, int]) -> int:
-    """Integer factor between the calibration's sensor and the stored images.
+@dataclass(frozen=True)
+class Downscale:
+    """How stored images relate to the sensor a calibration describes.
+
+    ``factor`` is the native downscale (sensor / image, an integer when one fits both axes, else the one
+    the long axis gives); ``sensor`` and ``image`` are ``(width, height)``.
+    """
+
+    factor: float
+    sensor: tuple[int, int]
+    image: tuple[int, int]
+
+    def intrinsics(self, K_sensor: np.ndarray) -> np.ndarray:
+        """``(..., 3, 3)`` K of the stored images: the sensor's K resized to the image size, each axis by its
+        exact ratio with the half-pixel rule (the image is the sensor resampled to its stored size)."""
+        sx = self.image[0] / self.sensor[0]
+        sy = self.image[1] / self.sensor[1]
+        return resize_intrinsics(np.asarray(K_sensor, dtype=np.float64), sx, sy)
+
+
+def _fits(sensor: int, image: int, factor: float) -> bool:
+    """Whether ``sensor / factor`` rounds (up or down) to ``image`` pixels."""
+    return abs(sensor / factor - image) < 1.0
+
+
+def downsample_factor(
+    K_sensor: np.ndarray,
+    image_size: tuple[int, int],
+    sensor_size: tuple[int, int],
+    option: str = "--sensor-size",
+) -> Downscale:
+    """The downscale between the calibrated sensor and the stored images, from their sizes.
 
     K_sensor: (B, 3, 3) the rig's intrinsics in sensor pixels; image_size, sensor_size: (width, height).
-    The exact sensor match wins; otherwise the factor is read from the median principal point, which a
-    sensor's calibration places near its centre. Raises ValueError when neither gives an integer.
+    Both axes must give the same downscale within rounding (4096 / 16 = 256 and 2668 / 16 = 166.75, stored
+    as 167 or 166), integer or not. The principal points are only a consistency check: their median must
+    lie in the middle third of the sensor, which catches a calibration made for another sensor size (the
+    message names the size they suggest and ``option`` to pass it). Raises InputError otherwise.
     """
-    width, height = image_size
-    for factor in range(1, 65):
-        if (width * factor, height * factor) == tuple(sensor_size):
-            return factor
-    centre = np.median(K_sensor[:, :2, 2], axis=0)
-    implied = (2.0 * centre + 1.0) / np.array([width, height])  # sensor size / image size per axis
-    factor = int(round(float(implied.mean())))
-    if factor < 1 or abs(implied.mean() - factor) > FACTOR_TOLERANCE or np.abs(implied - factor).max() > 0.5:
+    width, height = (int(v) for v in image_size)
+    sensor_w, sensor_h = (int(v) for v in sensor_size)
+    sensor_text = f"{sensor_w}x{sensor_h}"
+    if width <= 0 or height <= 0:
+        raise InputError(f"images are {width}x{height}: no image size to relate to the {sensor_text} sensor")
+    ratios = (sensor_w / width, sensor_h / height)
+    nearest = round(max(ratios))
+    if nearest >= 1 and _fits(sensor_w, width, nearest) and _fits(sensor_h, height, nearest):
+        factor = float(nearest)
+    else:
+        # The long axis has the finer rounding; the other axis must round to its stored size too.
+        factor = ratios[0] if width >= height else ratios[1]
+        if not (_fits(sensor_w, width, factor) and _fits(sensor_h, height, factor)):
+            raise InputError(
+                f"images are {width}x{height}, which is no downscale of the {sensor_text} sensor: the width "
+                f"gives {ratios[0]:.3f}, the height {ratios[1]:.3f}; if the calibration describes another "
+                f"sensor, pass {option} WxH"
+            )
+    centre = np.median(np.asarray(K_sensor, dtype=np.float64).reshape(-1, 3, 3)[:, :2, 2], axis=0)
+    offset = np.abs(centre - (np.array([sensor_w, sensor_h]) - 1.0) / 2.0)
+    if (offset > np.array([sensor_w, sensor_h]) / 6.0).any():
+        suggested = np.maximum(np.round(2.0 * centre + 1.0), 1).astype(int)
         raise InputError(
-            f"images are {width}x{height}, which is no integer downscale of the {sensor_size[0]}x{sensor_size[1]} sensor, "
-            f"and the principal points imply factors {implied.round(2).tolist()}"
+            f"the principal points (median ({centre[0]:.0f}, {centre[1]:.0f}) px) are far from the centre of "
+            f"the {sensor_text} sensor the calibration is read for, so its K cannot describe that sensor; they "
+            f"suggest a sensor of about {suggested[0]}x{suggested[1]}: pass {option} WxH with the size the "
+            f"calibration was made at"
         )
-    return factor
+    return Downscale(factor, (sensor_w, sensor_h), (width, height))

@@ -20,7 +20,8 @@ from relightanyone.cli_options import (
     preset_option,
     workers_option,
 )
-from relightanyone.ingest.records import AdapterOptions, published_test_subjects
+from relightanyone.errors import InputError
+from relightanyone.ingest.records import AdapterOptions, published_splits
 from relightanyone.ingest.registry import ADAPTERS, AdapterSpec, load_adapter
 
 
@@ -35,7 +36,35 @@ def frame_numbers(values: tuple[str, ...]) -> tuple[int, ...] | None:
         raise ValueError(f"frames must be integers, got {', '.join(names)}") from None
 
 
-def _adapter_command(spec: AdapterSpec) -> click.Command:
+def sensor_size(value: str | None) -> tuple[int, int] | None:
+    """``--sensor-size 2668x4096`` -> (2668, 4096); nothing given -> None (the layout's own)."""
+    if value is None:
+        return None
+    parts = value.lower().split("x")
+    try:
+        width, height = (int(p) for p in parts)
+    except ValueError:
+        raise ValueError(
+            f"sensor size must be WIDTHxHEIGHT in pixels, e.g. 2668x4096, got {value!r}"
+        ) from None
+    if width <= 0 or height <= 0:
+        raise ValueError(f"sensor size must be positive, got {value!r}")
+    return width, height
+
+
+def accept_check_option() -> click.Option:
+    return click.option(
+        "--accept-check",
+        "accepted_checks",
+        multiple=True,
+        metavar="NAME",
+        help="Do not apply this convention check (repeatable; the names are listed in docs/ingest.md, "
+        "Checks); recorded in the manifest.",
+    )
+
+
+def _adapter_command(spec: AdapterSpec, doctor: bool = False) -> click.Command:
+    """``ingest <layout>``, or with ``doctor`` ``doctor <layout>`` (same arguments, only the checks)."""
     command_name, tracking_required = spec.command, spec.tracking_required
 
     @click.command(command_name)
@@ -47,7 +76,9 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         help="VHAP export holding <subject>/transforms.json and meshes/"
         + ("" if tracking_required else " (default: the capture's own meshes/)"),
     )
-    @out_option("Root folder of normalized datasets; the dataset is written to OUT/<name>.")
+    @out_option(
+        "Root folder of normalized datasets; the dataset is written to OUT/<name>.", required=not doctor
+    )
     @preset_option("paper", "Crop size: tiny/demo 128, small 512, paper 1024.")
     @click.option("--name", default=None, help="Name of the normalized dataset (default: the adapter's).")
     @click.option(
@@ -71,15 +102,38 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         "splits_file",
         type=EXISTING_FILE,
         default=None,
-        help='JSON {"subject": "train"|"test"} of a published protocol; its test subjects are held out.',
+        help='JSON {"subject": "train"|"val"|"test"} of a published protocol: each row gets its '
+        "subject's split (unlisted subjects train); training reads only 'train' rows.",
     )
     @click.option(
         "--all-frames", is_flag=True, help="Every listed frame instead of the neutral one (Ava-256)."
     )
     @click.option("--sequence", default=None, help="Sequence to read (NeRSemble; default: the first).")
+    @click.option(
+        "--sensor-size",
+        default=None,
+        metavar="WxH",
+        callback=parsed_by(sensor_size),
+        help="Size in pixels of the sensor the calibration's K describes, when it is not the layout's "
+        "own (Ava-256: 2668x4096; NeRSemble: the file's width/height or 2200x3208).",
+    )
+    @click.option(
+        "--tracking-fps",
+        type=click.FloatRange(min=0, min_open=True),
+        default=None,
+        help="Frame rate the tracked frames were extracted at (VHAP's default is 25), when the tracking "
+        "does not match the capture's video frame for frame.",
+    )
+    @click.option(
+        "--no-neck-mask",
+        is_flag=True,
+        help="Accept a template without its neck_mask.txt: masks and crops then include the neck "
+        "(recorded in the manifest).",
+    )
     @workers_option()
     @executor_option()
     @dry_run_option("Print what was found and the estimated size, write nothing.")
+    @accept_check_option()
     def command(
         src,
         tracking,
@@ -94,37 +148,80 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         splits_file,
         all_frames,
         sequence,
+        sensor_size,
+        tracking_fps,
+        no_neck_mask,
         workers,
         executor,
         dry_run,
+        accepted_checks,
     ):
-        from relightanyone.ingest.runner import found_lines, ingest_dataset, ingest_executor, prepare
+        from relightanyone.ingest.runner import (
+            check_lines,
+            found_lines,
+            ingest_dataset,
+            ingest_executor,
+            nothing_to_write,
+            prepare,
+            run_checks,
+        )
+        from relightanyone.ingest.tracking import TrackingOptions  # imports torch through the calibration
 
         adapter = load_adapter(command_name)
-        held_out = set(test_subjects or ()) | set(published_test_subjects(splits_file) if splits_file else ())
+        published = published_splits(splits_file) if splits_file else {}
+        held_out = set(test_subjects or ()) | {s for s, split in published.items() if split == "test"}
         options = AdapterOptions(
             dataset_name=name,
             subjects=subjects,
             cameras=cameras,
             frames=frames,
             test_subjects=tuple(sorted(held_out)),
+            val_subjects=tuple(sorted(s for s, split in published.items() if split == "val")),
             all_frames=all_frames,
             sequence=sequence,
+            sensor_size=sensor_size,
         )
         adapter.detect(src)
-        if not dry_run:
+        if not (dry_run or doctor):
             # After the cheap layout check (a wrong SRC fails at once, with no pool to wait for), so the
             # workers' imports overlap the planning.
             ingest_executor(workers, executor).warm()
         plan = adapter.plan(src, options)
-        prepared = prepare(plan, tracking, preset, template, workers=workers, executor=executor)
-        for line in found_lines(plan, prepared[0], prepared[2]):
+        tracking_options = TrackingOptions(tracking_fps=tracking_fps, no_neck_mask=no_neck_mask)
+        prepared = prepare(
+            plan,
+            tracking,
+            preset,
+            template,
+            workers=workers,
+            executor=executor,
+            tracking_options=tracking_options,
+        )
+        for line in found_lines(plan, prepared[0], prepared[2], every_reason=dry_run):
             click.echo(line)
-        if dry_run:
-            click.echo("dry run: nothing written")
+        empty = nothing_to_write(plan, prepared[2])
+        if empty:
+            raise InputError(empty)
+        # doctor judges every image, a dry run the first frame of each subject, the ingest each image it
+        # writes (inside its tasks).
+        image_frames = None if doctor else 1 if dry_run else 0
+        checks = run_checks(prepared, tuple(accepted_checks), image_frames)
+        for line in check_lines(checks):
+            click.echo(line)
+        checks.raise_for_stops(str(src), listed=True)
+        if doctor or dry_run:
+            click.echo("dry run: nothing written" if dry_run else "doctor: nothing written")
             return
         summary = ingest_dataset(
-            plan, tracking, out, preset, workers=workers, executor=executor, progress=True, prepared=prepared
+            plan,
+            tracking,
+            out,
+            preset,
+            workers=workers,
+            executor=executor,
+            progress=True,
+            prepared=prepared,
+            checks=checks,
         )
         for line in summary.lines():
             click.echo(line)
@@ -134,6 +231,11 @@ def _adapter_command(spec: AdapterSpec) -> click.Command:
         f"Normalize a {command_name} capture at SRC into OUT/<name> (decode, colour calibration, canonical "
         "cameras, undistort, crop around the tracked mesh, mask, shards). Re-running resumes an interrupted run."
     )
+    if doctor:
+        command.help = (
+            f"Check a {command_name} capture at SRC for convention mistakes (cameras, units, images) with the "
+            "arguments ingest takes, reading every image once; write nothing. Exits 1 on a dataset-level mistake."
+        )
     return command
 
 
@@ -142,7 +244,13 @@ def ingest_group() -> None:
     """Normalize native capture datasets into the normalized format."""
 
 
+@click.group("doctor")
+def doctor_group() -> None:
+    """Check a native capture for camera, unit and image mistakes before ingesting it."""
+
+
 for _spec in ADAPTERS.values():
     ingest_group.add_command(_adapter_command(_spec))
+    doctor_group.add_command(_adapter_command(_spec, doctor=True))
 
-COMMANDS: dict[str, click.Command] = {"ingest": ingest_group}
+COMMANDS: dict[str, click.Command] = {"ingest": ingest_group, "doctor": doctor_group}

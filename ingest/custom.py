@@ -19,7 +19,8 @@ Layout (``docs/ingest.md``, "Custom captures")::
      "name": "...", "licence": "..."}             optional
 
 Every problem names the file and the key or camera. An image of a camera absent from ``cameras.json`` is
-refused (quarantined), as is a frame without a mesh.
+refused (quarantined), as is a frame without a mesh and an image whose header gives another size than
+its camera's ``width``/``height`` (headers are read while planning, so a dry run reports the sizes).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import numpy as np
 
 from relightanyone.align.colour import colour_matrix_problem
 from relightanyone.format.schema import check_name
+from relightanyone.ingest.decode import header_size
 from relightanyone.ingest.records import (
     AdapterOptions,
     ColourCalibration,
@@ -216,6 +218,19 @@ def plan(src: Path, options: AdapterOptions | None = None) -> DatasetPlan:
                         )
                     )
                     continue
+                codec = _codec(extension, encoding)
+                size = header_size(image_path, codec)
+                expected = (cameras[camera].width, cameras[camera].height)
+                if size is not None and size != expected:
+                    refusals.append(
+                        Refusal(
+                            item,
+                            relative,
+                            f"image is {size[0]}x{size[1]} but {cameras_path.name} gives camera {camera} "
+                            f"{expected[0]}x{expected[1]}",
+                        )
+                    )
+                    continue
                 alpha = _find_alpha(src, subject, frame_dir.name, camera)
                 views.append(
                     SourceView(
@@ -223,7 +238,7 @@ def plan(src: Path, options: AdapterOptions | None = None) -> DatasetPlan:
                         frame=frame,
                         camera=cameras[camera],
                         pattern="full",
-                        image=ImageRef(relative, _codec(extension, encoding)),
+                        image=ImageRef(relative, codec),
                         colour=_colour(document, camera, cameras_path),
                         source=relative,
                         alpha=None
@@ -251,6 +266,10 @@ def plan(src: Path, options: AdapterOptions | None = None) -> DatasetPlan:
         source_dataset=document.get("source", SOURCE_DATASET),
         licence=document.get("licence", LICENCE),
         subjects=subjects,
-        found={"cameras": sorted(cameras), "units": document["units"], "encoding": encoding},
+        found={
+            "cameras": sorted({v.camera.name for s in subjects for v in s.views}),
+            "units": document["units"],
+            "encoding": encoding,
+        },
         mesh_units_to_m=scale,
     )

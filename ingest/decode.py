@@ -48,6 +48,23 @@ class DecodeError(InputError):
 _video_threads = 0
 
 
+def header_size(path: str | Path, codec: str) -> tuple[int, int] | None:
+    """(width, height) of an image file from its header (no pixel decoding; EXR through OpenEXR, the other
+    still formats through Pillow); None when it cannot be read (the runner reports it when it decodes)."""
+    try:
+        if codec == "exr-linear":
+            import OpenEXR
+
+            window = OpenEXR.InputFile(str(path)).header()["dataWindow"]
+            return window.max.x - window.min.x + 1, window.max.y - window.min.y + 1
+        from PIL import Image
+
+        with Image.open(path) as image:
+            return image.size
+    except Exception:  # OpenEXR and Pillow raise assorted types on damaged files; the runner reports them
+        return None
+
+
 def set_decoder_threads(avif: int, video: int) -> None:
     """Threads of the AVIF decoder (libavif through Pillow) and of the video decoder (FFmpeg through PyAV)
     in this process; 0 restores a library's default, one thread per CPU.

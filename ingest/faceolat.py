@@ -33,7 +33,8 @@ import numpy as np
 from relightanyone.align.colour import read_faceolat_colour_matrix
 from relightanyone.format.schema import check_name
 from relightanyone.ingest.adapter_common import adapter_plan
-from relightanyone.ingest.calibration import CalibrationError
+from relightanyone.ingest.calibration import CalibrationError, downsample_factor
+from relightanyone.ingest.decode import header_size
 from relightanyone.ingest.metashape import read_metashape_xml
 from relightanyone.ingest.records import (
     AdapterOptions,
@@ -259,22 +260,6 @@ def _scan_frames(src: Path, ext: str) -> dict[str, dict[str, dict[str, dict[int,
     return found
 
 
-def _image_size(path: Path, codec: str) -> tuple[int, int] | None:
-    """(width, height) of an EXR or AVIF from its header (no pixel decoding); None when unreadable."""
-    try:
-        if codec == "exr-linear":
-            import OpenEXR
-
-            window = OpenEXR.InputFile(str(path)).header()["dataWindow"]
-            return window.max.x - window.min.x + 1, window.max.y - window.min.y + 1
-        from PIL import Image
-
-        with Image.open(path) as image:
-            return image.size
-    except Exception:  # OpenEXR and Pillow raise assorted types on damaged files; the runner reports them
-        return None
-
-
 def _camera_image_sizes(
     captures: dict[str, dict[str, dict[int, Path]]], cameras: tuple[str, ...], codec: str
 ) -> dict[str, tuple[int, int]]:
@@ -285,7 +270,7 @@ def _camera_image_sizes(
             for frame in sorted(frames):
                 if camera in sizes or camera not in cameras:
                     break
-                size = _image_size(frames[frame], codec)
+                size = header_size(frames[frame], codec)
                 if size is not None:
                     sizes[camera] = size
     return sizes
@@ -303,19 +288,18 @@ def _native_cameras(
     for index, name in enumerate(rig.cameras.names):
         one = rig.cameras[index]
         width, height = int(one.width[0]), int(one.height[0])
+        K = one.K[0].numpy().astype(np.float64)
         if name in image_sizes and image_sizes[name] != (width, height):
-            new_w, new_h = image_sizes[name]
-            # A resize rounds each side to whole pixels: the two scales differ by at most half a pixel each.
-            if abs(new_w / width - new_h / height) > 0.5 / width + 0.5 / height:
-                problems[name] = (
-                    f"frames are {new_w}x{new_h} but the calibration is for {width}x{height} (other aspect ratio)"
-                )
+            try:  # the calibration's sensor size against the frames'; the rig's principal points check it
+                downscale = downsample_factor(rig.cameras.K.numpy(), image_sizes[name], (width, height))
+            except ValueError as error:
+                problems[name] = f"frames do not fit the calibration of camera {name}: {error}"
                 continue
-            one = one.resize((new_w, new_h))
-            width, height = new_w, new_h
+            K = downscale.intrinsics(K)
+            width, height = image_sizes[name]
         cameras[name] = NativeCamera(
             name=name,
-            K=one.K[0].numpy().astype(np.float64),
+            K=K,
             w2c=one.w2c[0].numpy().astype(np.float64),
             dist=one.dist[0, :5].numpy().astype(np.float64),
             width=width,
@@ -375,6 +359,9 @@ def _plan_subject(
     cameras, problems = _native_cameras(rig, _camera_image_sizes(captures, rig.cameras.names, codec))
     for camera, reason in sorted(problems.items()):
         plan.refusals.append(Refusal(f"{subject}/{camera}", xml, reason))
+    plan.rig_w2c = {
+        name: rig.cameras.w2c[i].numpy().astype(np.float64) for i, name in enumerate(rig.cameras.names)
+    }
 
     schedules = found.setdefault("schedules", {})
     for rank, capture in enumerate(sorted(captures)):

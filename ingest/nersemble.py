@@ -16,10 +16,10 @@ The version is read from the folder structure (:func:`detect`), never asked for.
 Conventions:
 
 * Cameras: ``ingest.calibration.from_nersemble_params`` (OpenCV world_2_cam, metres, no distortion).
-  ``intrinsics`` describe a sensor an integer factor larger than the stored images (v1's PNGs are 2x
-  smaller than the 2200x3208 frames the calibration was made for): the factor is the exact one when the
-  image is an integer downscale of the sensor (``width``/``height`` keys of the file, else 2200x3208),
-  else the one the principal points imply; K is rescaled with the half-pixel rule.
+  ``intrinsics`` describe the calibrated sensor (``--sensor-size``, else the file's ``width``/``height``
+  keys, else the 2200x3208 frame), of which the stored images are a downscale (v1's PNGs are 2x smaller):
+  the factor comes from the two sizes (``ingest.calibration.downsample_factor``; the principal points
+  only check it) and K is resized to the stored size with the half-pixel rule.
 * There is no head pose in the release: cameras stay in the capture's world and the tracked meshes
   carry the head's motion.
 * Colour: v2's CCM acts on linear light after the video's sRGB decoding (codec ``mp4-frame``),
@@ -35,7 +35,6 @@ Conventions:
 from __future__ import annotations
 
 import re
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +45,7 @@ from relightanyone.ingest.adapter_common import adapter_plan, root_relative
 from relightanyone.ingest.calibration import (
     NERSEMBLE_FULL_SENSOR,
     CalibrationError,
+    Downscale,
     downsample_factor,
     from_nersemble_params,
 )
@@ -131,8 +131,9 @@ def choose_sequence(folder: Path, version: str, wanted: str | None) -> str | Non
     return names[0] if names else None
 
 
-def video_info(path: Path) -> tuple[int, int, int]:
-    """``(width, height, frame_count)`` of a video from its container (no decoding); ValueError if unreadable."""
+def video_info(path: Path) -> tuple[int, int, int, float | None]:
+    """``(width, height, frame_count, frames per second)`` of a video from its container (no decoding; the
+    rate is None when the container states none); ValueError if unreadable."""
     import av
 
     try:
@@ -143,7 +144,9 @@ def video_info(path: Path) -> tuple[int, int, int]:
             count = int(stream.frames)
             if count <= 0:  # containers without a frame count: count the packets (no decoding)
                 count = sum(1 for packet in container.demux(stream) if packet.size)
-            return int(stream.codec_context.width), int(stream.codec_context.height), count
+            rate = stream.average_rate or stream.base_rate
+            fps = float(rate) if rate else None
+            return int(stream.codec_context.width), int(stream.codec_context.height), count, fps
     except (av.error.FFmpegError, OSError) as error:
         raise LayoutError(f"{path}: not a readable video ({error})") from None
 
@@ -159,27 +162,26 @@ def image_size(path: Path) -> tuple[int, int]:
         raise LayoutError(f"{path}: not a readable image ({error})") from None
 
 
-def scale_factor(K_sensor: np.ndarray, size: tuple[int, int], calibration: dict) -> int:
-    """Integer factor between the calibration's sensor and images of ``size`` (width, height).
-
-    K_sensor: (B, 3, 3). The sensor is the file's ``width``/``height`` or NeRSemble's 2200x3208 frame.
-    """
-
-    sensor = (
+def calibrated_sensor(calibration: dict, options: AdapterOptions) -> tuple[int, int]:
+    """(width, height) the intrinsics describe: ``--sensor-size``, else the file's ``width``/``height``
+    keys, else NeRSemble's 2200x3208 frame."""
+    if options.sensor_size is not None:
+        return options.sensor_size
+    return (
         int(calibration.get("width", NERSEMBLE_FULL_SENSOR[0])),
         int(calibration.get("height", NERSEMBLE_FULL_SENSOR[1])),
     )
-    return downsample_factor(K_sensor, size, sensor)
 
 
-def read_rig(path: Path, size: tuple[int, int]) -> tuple[dict[str, NativeCamera], int]:
-    """Cameras of ``camera_params.json`` for stored images of ``size`` (width, height), by serial, and the factor.
+def read_rig(
+    path: Path, size: tuple[int, int], options: AdapterOptions
+) -> tuple[dict[str, NativeCamera], Downscale]:
+    """Cameras of ``camera_params.json`` for stored images of ``size`` (width, height), by serial, and the
+    downscale from the calibrated sensor (:func:`calibrated_sensor`).
 
     Raises ``CalibrationError``/ValueError naming the file when it is invalid.
     """
     import json
-
-    import torch
 
     if not Path(path).is_file():
         raise CalibrationError(path, "<file>", "calibration file not found")
@@ -191,29 +193,24 @@ def read_rig(path: Path, size: tuple[int, int]) -> tuple[dict[str, NativeCamera]
         raise CalibrationError(path, "<file>", "expected a JSON object")
     rig = from_nersemble_params(path, image_size=size)  # given the path, its errors name the file
     try:
-        factor = scale_factor(rig.K.numpy(), size, data)
+        downscale = downsample_factor(rig.K.numpy(), size, calibrated_sensor(data, options))
     except ValueError as error:
         raise CalibrationError(path, "intrinsics", str(error)) from None
-    sensor = replace(
-        rig,
-        width=torch.full_like(rig.width, size[0] * factor),
-        height=torch.full_like(rig.height, size[1] * factor),
-    )
-    stored = sensor.resize(size)
+    Ks = downscale.intrinsics(rig.K.numpy())
     cameras = {}
-    for index, serial in enumerate(stored.names):
-        K = stored.K[index].numpy().astype(np.float64)
+    for index, serial in enumerate(rig.names):
+        K = Ks[index]
         if abs(np.linalg.det(K)) < 1e-9:
             raise CalibrationError(path, f"intrinsics ({serial})", "singular intrinsics matrix")
         cameras[serial] = NativeCamera(
             name=serial,
             K=K,
-            w2c=stored.w2c[index].numpy().astype(np.float64),
+            w2c=rig.w2c[index].numpy().astype(np.float64),
             dist=np.zeros(5),
             width=size[0],
             height=size[1],
         )
-    return cameras, factor
+    return cameras, downscale
 
 
 def _v2_colour(path: Path, source: str) -> dict[str, ColourCalibration]:
@@ -240,7 +237,7 @@ def _plan_v2(
 
     videos_dir = folder / "sequences" / sequence / "images"
     videos = {m.group(1): p for p in sorted(videos_dir.glob("cam_*.mp4")) if (m := _VIDEO.match(p.name))}
-    infos: dict[str, tuple[int, int, int]] = {}
+    infos: dict[str, tuple[int, int, int, float | None]] = {}
     for serial, path in videos.items():
         if not options.keeps_camera(serial):
             continue
@@ -259,7 +256,7 @@ def _plan_v2(
         return
     size = infos[sorted(infos)[0]][:2]
     try:
-        cameras, factor = read_rig(folder / V2_CALIBRATION, size)
+        cameras, downscale = read_rig(folder / V2_CALIBRATION, size, options)
     except (CalibrationError, ValueError) as error:
         plan.refusals.append(Refusal(subject, relpath(V2_CALIBRATION), str(error)))
         return
@@ -268,7 +265,8 @@ def _plan_v2(
     except (ValueError, FileNotFoundError) as error:
         plan.refusals.append(Refusal(subject, relpath(V2_COLOUR), str(error)))
         return
-    facts.update(image_size=list(size), downsample_factor=factor)
+    facts.update(image_size=list(size), downsample_factor=downscale.factor)
+    plan.rig_w2c = {serial: camera.w2c for serial, camera in cameras.items()}
     for serial in sorted(set(videos) - set(cameras)):
         if options.keeps_camera(serial):
             plan.refusals.append(
@@ -278,7 +276,19 @@ def _plan_v2(
                     f"camera {serial} is absent from {V2_CALIBRATION}",
                 )
             )
-    longest = max(count for _, _, count in infos.values())
+    longest = max(count for _, _, count, _ in infos.values())
+    rates = sorted({fps for *_, fps in infos.values() if fps})
+    plan.frame_rate, plan.frame_count = (rates[0] if len(rates) == 1 else None), longest
+    if len(rates) > 1:  # the cameras disagree: no single native clock to pair the tracking with
+        plan.refusals.append(
+            Refusal(
+                subject,
+                relpath(f"sequences/{sequence}/images"),
+                f"the videos run at different frame rates ({', '.join(f'{r:g}' for r in rates)} fps)",
+            )
+        )
+        return
+    facts.update(frame_rate=rates[0] if rates else None)
     frames = sorted(options.frames) if options.frames is not None else list(range(longest))
     for serial in sorted(cameras):
         if not options.keeps_camera(serial):
@@ -298,7 +308,7 @@ def _plan_v2(
                 )
             )
             continue
-        width, height, count = infos[serial]
+        width, height, count, _ = infos[serial]
         camera = cameras[serial]
         if (width, height) != (camera.width, camera.height):
             plan.refusals.append(
@@ -345,6 +355,9 @@ def _plan_v1(
         if (m := _FRAME_DIR.match(p.name)) and (p / V1_IMAGE_DIR).is_dir()
     }
     frames = sorted(f for f in frame_dirs if options.keeps_frame(f))
+    # v1's frame folders are the 73 fps video's frames (the image folder's name states the rate).
+    plan.frame_rate = float(re.search(r"(\d+)fps", V1_IMAGE_DIR).group(1))
+    plan.frame_count = max(frame_dirs, default=-1) + 1
     for frame in sorted(set(options.frames or ()) - set(frame_dirs)):
         plan.refusals.append(
             Refusal(
@@ -379,11 +392,12 @@ def _plan_v1(
         )
         return
     try:
-        cameras, factor = read_rig(folder / V1_CALIBRATION, size)
+        cameras, downscale = read_rig(folder / V1_CALIBRATION, size, options)
     except (CalibrationError, ValueError) as error:
         plan.refusals.append(Refusal(subject, relpath(V1_CALIBRATION), str(error)))
         return
-    facts.update(image_size=list(size), downsample_factor=factor)
+    facts.update(image_size=list(size), downsample_factor=downscale.factor)
+    plan.rig_w2c = {serial: camera.w2c for serial, camera in cameras.items()}
     for serial in sorted(set(serials) - set(cameras)):
         plan.refusals.append(
             Refusal(

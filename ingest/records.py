@@ -87,6 +87,14 @@ class ColourCalibration:
         if self.space not in ("linear", "display"):
             raise ValueError(f"colour calibration space must be 'linear' or 'display', got {self.space!r}")
 
+    def applied_matrix(self) -> np.ndarray:
+        """(3, 4) ``[matrix | offset − matrix @ black]``: the same correction as one affine map,
+        ``rgb_out = A[:, :3] @ rgb_in + A[:, 3]`` (on display-encoded values when ``space`` is
+        ``"display"``), as a row records it."""
+        matrix = np.asarray(self.matrix, dtype=np.float64)
+        offset = np.asarray(self.offset, dtype=np.float64) - matrix @ np.asarray(self.black, dtype=np.float64)
+        return np.hstack([matrix, offset.reshape(3, 1)])
+
     @staticmethod
     def identity() -> ColourCalibration:
         return ColourCalibration(matrix=np.eye(3))
@@ -140,6 +148,17 @@ class SubjectPlan:
     # Tracked meshes shipped with the dataset itself (custom captures): frame -> OBJ path, in the native
     # world and its units (see DatasetPlan.mesh_units_to_m). Empty when a tracking export provides them.
     meshes: dict[int, str] = field(default_factory=dict)
+    # Every calibrated camera of the rig, native ``w2c (4, 4)`` by name, whatever the selection keeps or
+    # a dropped frame lacks: the native->tracker fit of each frame uses them all. Empty: the views' cameras.
+    rig_w2c: dict[str, np.ndarray] = field(default_factory=dict)
+    # frame -> head-to-native-world pose ``(4, 4)`` folded into ``rig_w2c`` for that frame (Ava-256).
+    head_poses: dict[int, np.ndarray] = field(default_factory=dict)
+    # Facts about this subject printed before writing (image sizes, downscale, ...).
+    found: dict = field(default_factory=dict)
+    # The capture's native frame rate (fps) and frame count, where a container states them (videos): the
+    # tracking's timesteps are paired with native frames against them. None for captures of still images.
+    frame_rate: float | None = None
+    frame_count: int | None = None
 
 
 @dataclass
@@ -176,10 +195,14 @@ class AdapterOptions:
     cameras: tuple[str, ...] | None = None
     frames: tuple[int, ...] | None = None
     test_subjects: tuple[str, ...] = ()  # subjects written with split "test" (all others "train")
+    val_subjects: tuple[str, ...] = ()  # subjects written with split "val" (model selection, never trained)
     all_frames: bool = (
         False  # datasets with a preferred frame (Ava-256's neutral peak): take every listed frame
     )
     sequence: str | None = None  # datasets recorded as named sequences (NeRSemble): which one to ingest
+    # (width, height) of the sensor the calibration's K describes, when the layout does not say it and it
+    # is not the dataset's usual sensor (Ava-256: 2668x4096; NeRSemble: the file's width/height or 2200x3208)
+    sensor_size: tuple[int, int] | None = None
 
     def keeps_subject(self, subject: str) -> bool:
         return self.subjects is None or subject in self.subjects
@@ -191,15 +214,28 @@ class AdapterOptions:
         return self.frames is None or frame in self.frames
 
     def split_of(self, subject: str) -> str:
-        return "test" if subject in self.test_subjects else "train"
+        if subject in self.test_subjects:
+            return "test"
+        return "val" if subject in self.val_subjects else "train"
 
 
-def published_test_subjects(path: Path) -> tuple[str, ...]:
-    """The held-out subjects of a published protocol file, JSON ``{"subject": "train" | "test"}``, sorted."""
+SPLIT_NAMES = ("train", "val", "test")
+
+
+def published_splits(path: Path) -> dict[str, str]:
+    """A published protocol file, JSON ``{"subject": "train" | "val" | "test"}`` -> {subject: split}.
+
+    Subjects it does not list are training subjects; each split value must be one of :data:`SPLIT_NAMES`.
+    """
     try:
         splits = json.loads(Path(path).read_text())
     except ValueError as error:
         raise InputError(f"{path}: not valid JSON ({error})") from None
-    if not isinstance(splits, dict) or not all(isinstance(v, str) for v in splits.values()):
-        raise InputError(f'{path}: expected a JSON object {{"subject": "train" | "test"}}')
-    return tuple(sorted(subject for subject, split in splits.items() if split == "test"))
+    if not isinstance(splits, dict):
+        raise InputError(f'{path}: expected a JSON object {{"subject": "train" | "val" | "test"}}')
+    unknown = sorted(f"{s}={v!r}" for s, v in splits.items() if v not in SPLIT_NAMES)
+    if unknown:
+        raise InputError(
+            f"{path}: split values must be one of {', '.join(SPLIT_NAMES)}; got {', '.join(unknown[:3])}"
+        )
+    return dict(splits)

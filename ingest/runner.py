@@ -23,7 +23,7 @@ import json
 import re
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 
@@ -31,6 +31,7 @@ import numpy as np
 
 from relightanyone.align.geometry import (
     decompose_similarity,
+    fold_head_pose,
     light_intensities_to_canonical,
     lights_to_canonical,
     similarity,
@@ -41,6 +42,7 @@ from relightanyone.format.codecs import DEFAULT_IMAGE_ENCODING
 from relightanyone.format.schema import (
     INGEST_REPORT_NAME,
     NECK_MASK_NAME,
+    QUARANTINE_NAME,
     TEMPLATE_NAME,
     DatasetInfo,
     LightRow,
@@ -50,13 +52,17 @@ from relightanyone.format.schema import (
     fingerprint_config,
 )
 from relightanyone.format.shards import ShardWriter
+from relightanyone.ingest.checks import CheckReport, check_tasks, view_item
 from relightanyone.ingest.records import DatasetPlan, SubjectPlan
-from relightanyone.ingest.subject_task import IngestSettings, SubjectTask, run_subject_task
+from relightanyone.ingest.subject_task import IngestSettings, SubjectTask, check_images, run_subject_task
 from relightanyone.ingest.tracking import (
+    NECK_MASK_NAMES,
     TRANSFORMS_NAME,
     AlignmentError,
     Template,
+    TrackingOptions,
     align_subject,
+    check_export_mode,
     find_template,
     load_template,
     shipped_tracking,
@@ -72,6 +78,10 @@ BYTES_PER_PIXEL = {"raw-f16": 2.02, "png16": 1.98, "exr-half": 1.38}
 TRACKER_NAME = "VHAP export"
 SHIPPED_TRACKER_NAME = "meshes shipped with the capture"
 SHOWN_REASONS = 5  # refusals and failed frames listed before writing; every one goes to quarantine.jsonl
+SHOWN_VALUES = 25  # names listed per line of what was found (cameras, frames, ...)
+# A tracked mesh fits the template (or its own canonical shape) to a few mm; far more means other units,
+# another topology or another vertex order.
+LARGE_FIT_RMS_MM = 20.0
 _TASK_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 # What the local pool's server imports once, so each forked worker starts with them loaded.
 WORKER_PRELOAD = (
@@ -113,15 +123,21 @@ class IngestSummary:
     camera_disagreement_mm: float
     camera_disagreement_deg: float
     reasons: dict[str, int] = field(default_factory=dict)
+    tracker_cameras: int = (
+        0  # cameras compared with the tracker's (none for meshes shipped in the native world)
+    )
 
     def lines(self) -> list[str]:
         out = [
             f"{self.dataset}: {self.rows} rows written, {self.quarantined} quarantined, "
             f"{self.subjects} subjects ({self.resumed_subjects} resumed), {self.bytes / 1e6:.1f} MB, "
-            f"{self.seconds:.1f} s -> {self.path}",
-            f"native vs tracker cameras: worst {self.camera_disagreement_mm:.3f} mm, "
-            f"{self.camera_disagreement_deg:.4f} deg",
+            f"{self.seconds:.1f} s -> {self.path}"
         ]
+        if self.tracker_cameras:
+            out.append(
+                f"native vs tracker cameras: worst {self.camera_disagreement_mm:.3f} mm, "
+                f"{self.camera_disagreement_deg:.4f} deg ({self.tracker_cameras} cameras)"
+            )
         out += [f"  quarantined ({stage}): {count}" for stage, count in sorted(self.reasons.items())]
         return out
 
@@ -153,10 +169,13 @@ def check_plan_names(plan: DatasetPlan) -> None:
 
 
 def check_tracking_dir(tracking_dir: Path, subjects: list[str]) -> None:
-    """Raise naming what to pass when no subject of the plan has a folder under ``tracking_dir``."""
+    """Raise naming what to pass when no subject of the plan has a folder under ``tracking_dir``, or when
+    a subject's export is one the toolkit cannot read (VHAP's parameter mode), before anything is read."""
     tracking_dir = Path(tracking_dir)
     if not tracking_dir.is_dir():
         raise FileNotFoundError(f"tracking folder {tracking_dir} does not exist")
+    for subject in subjects:
+        check_export_mode(subject_tracking_folder(tracking_dir, subject))
     if not subjects or any(
         (subject_tracking_folder(tracking_dir, s) / TRANSFORMS_NAME).is_file() for s in subjects
     ):
@@ -172,16 +191,31 @@ def check_tracking_dir(tracking_dir: Path, subjects: list[str]) -> None:
 
 
 def native_cameras_by_frame(plan: SubjectPlan) -> dict[int, dict[str, np.ndarray]]:
-    """frame -> camera name -> native ``w2c (4, 4)`` of a subject's views."""
+    """frame -> camera name -> native ``w2c (4, 4)`` for every frame that has a view.
+
+    The cameras are the whole calibrated rig when the adapter gives it (``plan.rig_w2c``, each frame's head
+    pose folded in), so the native->tracker fit does not depend on ``--cameras`` or on dropped images;
+    else the views' own cameras.
+    """
+    frames = sorted({int(view.frame) for view in plan.views})
+    if plan.rig_w2c:
+        return {
+            frame: {
+                name: fold_head_pose(w2c, plan.head_poses[frame]) if frame in plan.head_poses else w2c
+                for name, w2c in plan.rig_w2c.items()
+            }
+            for frame in frames
+        }
     out: dict[int, dict[str, np.ndarray]] = {}
     for view in plan.views:
         out.setdefault(int(view.frame), {})[view.camera.name] = np.asarray(view.camera.w2c, dtype=np.float64)
     return out
 
 
-def _align_subject_item(item: tuple, template: Template):
-    """:func:`align_subject` of one ``(subject, native cameras by frame, tracking)`` item."""
-    return align_subject(*item, template)
+def _align_subject_item(item: tuple, template: Template, options: TrackingOptions):
+    """:func:`align_subject` of one ``(subject, native cameras by frame, tracking, clock)`` item."""
+    subject, native, tracking, clock = item
+    return align_subject(subject, native, tracking, template, clock, options)
 
 
 def plan_tasks(
@@ -190,6 +224,7 @@ def plan_tasks(
     template: Template,
     workers: int = 1,
     executor: str = "local",
+    options: TrackingOptions | None = None,
 ) -> list[SubjectTask]:
     """Relate every (subject, frame) of ``plan`` to the tracking (no pixel is decoded): the VHAP export
     under ``tracking_dir``, or, without one, the meshes the plan ships (custom captures). Subjects are
@@ -202,11 +237,19 @@ def plan_tasks(
             tracking = subject_tracking_folder(tracking_dir, subject.subject)
         else:
             tracking = shipped_tracking(Path(plan.source_root), subject.meshes, plan.mesh_units_to_m)
-        items.append((subject.subject, native_cameras_by_frame(subject), tracking))
-    aligned = ingest_executor(workers, executor).map(partial(_align_subject_item, template=template), items)
+        clock = (subject.frame_rate, subject.frame_count)
+        items.append((subject.subject, native_cameras_by_frame(subject), tracking, clock))
+    align = partial(_align_subject_item, template=template, options=options or TrackingOptions())
+    aligned = ingest_executor(workers, executor).map(align, items)
     tasks = [
-        SubjectTask(task_name(subject.subject), subject, alignments, failures)
-        for subject, (alignments, failures) in zip(subjects, aligned, strict=True)
+        SubjectTask(
+            task_name(subject.subject),
+            subject,
+            alignments,
+            failures,
+            pairing if tracking_dir is not None else "",
+        )
+        for subject, (alignments, failures, pairing) in zip(subjects, aligned, strict=True)
     ]
     names = [t.task for t in tasks]
     if len(set(names)) != len(names):
@@ -222,6 +265,7 @@ def alignment_report(tasks: list[SubjectTask]) -> dict:
     for task in tasks:
         residuals = [a.fit_rms_mm for a in task.alignments.values()]
         subjects[task.plan.subject] = {
+            "frame_pairing": task.frame_pairing or None,
             "frames_aligned": len(task.alignments),
             "frames_failed": {str(f): reason for f, reason in sorted(task.failures.items())},
             "mesh_fit_rms_mm": round(max(residuals), 4) if residuals else None,
@@ -267,20 +311,54 @@ def alignment_failures(tasks: list[SubjectTask]) -> list[str]:
     return [reason for task in tasks for _, reason in sorted(task.failures.items())]
 
 
-def _listed(reasons: list[str]) -> list[str]:
-    """The first ``SHOWN_REASONS`` distinct reasons as indented lines (with how often each occurs), and
-    how many more there are."""
+def _listed(reasons: list[str], limit: int | None = SHOWN_REASONS) -> list[str]:
+    """The first ``limit`` distinct reasons (every one when None) as indented lines, with how often each
+    occurs, and how many more there are."""
     counts = Counter(reasons)
     distinct = list(counts)  # first-seen order
-    lines = [
-        f"    {r}" + (f" ({counts[r]} times)" if counts[r] > 1 else "") for r in distinct[:SHOWN_REASONS]
-    ]
-    if len(distinct) > SHOWN_REASONS:
-        more = len(distinct) - SHOWN_REASONS
+    shown = distinct if limit is None else distinct[:limit]
+    lines = [f"    {r}" + (f" ({counts[r]} times)" if counts[r] > 1 else "") for r in shown]
+    if len(distinct) > len(shown):
+        more = len(distinct) - len(shown)
         lines.append(
             f"    ... and {more} more reasons (a written dataset lists every item in quarantine.jsonl)"
         )
     return lines
+
+
+def listed_values(values, limit: int = SHOWN_VALUES) -> str:
+    """``a, b, c`` for a list (``... and N more`` past ``limit``), ``key: value; ...`` for a mapping."""
+    if isinstance(values, dict):
+        items = [f"{key}: {listed_values(value, limit)}" for key, value in values.items()]
+        separator = "; "
+    elif isinstance(values, (list, tuple, set)):
+        items = [str(value) for value in values]
+        separator = ", "
+    else:
+        return str(values)
+    text = separator.join(items[:limit])
+    return text + (f" ... and {len(items) - limit} more" if len(items) > limit else "")
+
+
+def fit_residual_lines(report: dict) -> list[str]:
+    """The worst template fit residual of the tracked meshes, flagged when it is too large to be a fit."""
+    residuals = {
+        subject: entry["mesh_fit_rms_mm"]
+        for subject, entry in report["subjects"].items()
+        if entry["mesh_fit_rms_mm"] is not None
+    }
+    if not residuals:
+        return []
+    subject = max(residuals, key=residuals.get)
+    worst = residuals[subject]
+    if worst <= LARGE_FIT_RMS_MM:
+        return [f"  template fit: worst residual {worst:.3f} mm (subject {subject})"]
+    large = sorted(s for s, value in residuals.items() if value > LARGE_FIT_RMS_MM)
+    return [
+        f"  template fit: residual {worst:.1f} mm for subject {subject} is too large for a fit of the same head "
+        f"(over {LARGE_FIT_RMS_MM:g} mm for {len(large)} of {len(residuals)} subjects): the tracked meshes and "
+        f"the template differ in units (mm vs m?), topology or vertex order"
+    ]
 
 
 def rig_unplaceable(plan: DatasetPlan, tasks: list[SubjectTask]) -> str | None:
@@ -336,6 +414,41 @@ def _lights(plan: DatasetPlan, tasks: list[SubjectTask]) -> tuple[list, dict]:
     return rows, {"placement": "mean head pose over all frames", "max_frame_deviation_mm": round(spread, 3)}
 
 
+def run_checks(
+    prepared: tuple[IngestSettings, Template, list[SubjectTask]],
+    accepted_checks: tuple[str, ...] = (),
+    image_frames: int | None = 0,
+) -> CheckReport:
+    """The convention checks (:mod:`.checks`) on what :func:`prepare` returned: every check that needs no
+    pixel, then the image check on the first ``image_frames`` aligned frames of each subject (None: every
+    frame; 0: none, since an ingest's tasks judge each image as they write it)."""
+    settings, template, tasks = prepared
+    report = check_tasks(tasks, template, accepted_checks)
+    if image_frames != 0 and not report.stops:
+        settings = replace(settings, accepted_checks=report.accepted)
+        for task in tasks:
+            report.findings += check_images(settings, task, image_frames)
+    return report
+
+
+def check_lines(report: CheckReport) -> list[str]:
+    """The convention checks' findings as printed before writing: one line each, or that all passed."""
+    accepted = f" (not applied: {', '.join(report.accepted)})" if report.accepted else ""
+    if not report.findings:
+        return [f"  convention checks: all passed{accepted}"]
+    return [f"  convention checks: {len(report.findings)} findings{accepted}"] + [
+        f"    {line}" for line in report.lines()
+    ]
+
+
+def refuse_checked_views(tasks: list[SubjectTask], checks: CheckReport) -> None:
+    """Give each task the views the convention checks quarantine, with their reasons."""
+    refused = checks.refused
+    for task in tasks:
+        items = {view_item(v) for v in task.plan.views}
+        task.refused_views = {item: reason for item, reason in refused.items() if item in items}
+
+
 def _fingerprint(plan: DatasetPlan, settings: IngestSettings, template: Template) -> str:
     """Changes whenever the plan's views, the settings or the template change (resume safety)."""
 
@@ -365,6 +478,7 @@ def _fingerprint(plan: DatasetPlan, settings: IngestSettings, template: Template
             "margin": settings.margin,
             "encoding": settings.encoding,
             "split": {s.subject: s.split for s in plan.subjects},
+            **({"accepted_checks": settings.accepted_checks} if settings.accepted_checks else {}),
         }
     )
 
@@ -377,12 +491,15 @@ def prepare(
     encoding: str | None = None,
     workers: int = 1,
     executor: str = "local",
+    tracking_options: TrackingOptions | None = None,
 ) -> tuple[IngestSettings, Template, list[SubjectTask]]:
     """Everything before writing: settings, the template and every frame related to the tracking.
 
     ``tracking_dir`` None uses the meshes the plan ships (custom captures); then ``template`` is needed
     unless the dataset folder holds ``template.obj``. ``workers``/``executor`` as for the ingest itself.
+    A template without its neck mask is refused unless ``tracking_options.no_neck_mask``.
     """
+    tracking_options = tracking_options or TrackingOptions()
 
     if preset not in PRESET_SIZES:
         raise ValueError(f"unknown preset {preset!r}; expected one of {', '.join(PRESET_SIZES)}")
@@ -394,6 +511,12 @@ def prepare(
         )
     template_path = find_template(Path(tracking_dir or plan.source_root), template)
     loaded = load_template(template_path)
+    if loaded.neck_mask_path is None and not tracking_options.no_neck_mask:
+        raise InputError(
+            f"{template_path}: the template has no neck mask ({' or '.join(NECK_MASK_NAMES)} beside it: one "
+            "0/1 per template vertex, 1 = below the neck line), so masks and crops would include the neck; "
+            "put it beside the template, or pass --no-neck-mask to ingest without a neck cut"
+        )
     if tracking_dir is not None:
         check_tracking_dir(Path(tracking_dir), [s.subject for s in plan.subjects])
     settings = IngestSettings(
@@ -406,24 +529,38 @@ def prepare(
         encoding=encoding or DEFAULT_IMAGE_ENCODING,
         video_threads=ingest_executor(workers, executor).cpu_share(),
     )
-    tasks = plan_tasks(plan, Path(tracking_dir) if tracking_dir else None, loaded, workers, executor)
+    tracking = Path(tracking_dir) if tracking_dir else None
+    tasks = plan_tasks(plan, tracking, loaded, workers, executor, tracking_options)
     return settings, loaded, tasks
 
 
-def found_lines(plan: DatasetPlan, settings: IngestSettings, tasks: list[SubjectTask]) -> list[str]:
-    """What was found, printed before writing: layout, counts, refusals, camera agreement, size."""
+def found_lines(
+    plan: DatasetPlan, settings: IngestSettings, tasks: list[SubjectTask], every_reason: bool = False
+) -> list[str]:
+    """What was found, printed before writing: layout, counts, refusals (every distinct reason with
+    ``every_reason``, as the dry run prints them), tracking, fit residuals, camera agreement, size."""
     report = alignment_report(tasks)
-    worst_mm = max((c["centre_mm"] for c in report["cameras"].values()), default=0.0)
-    worst_deg = max((c["angle_deg"] for c in report["cameras"].values()), default=0.0)
+    limit = None if every_reason else SHOWN_REASONS
     failed = sum(len(t.failures) for t in tasks)
     refused = planning_reasons(plan)
+    tracking = (
+        f"  tracking: {sum(len(t.alignments) for t in tasks)} frames aligned, {failed} without a usable mesh"
+    )
+    if report["cameras"]:
+        worst_mm = max(c["centre_mm"] for c in report["cameras"].values())
+        worst_deg = max(c["angle_deg"] for c in report["cameras"].values())
+        tracking += (
+            f"; native vs tracker cameras agree to {worst_mm:.3f} mm / {worst_deg:.4f} deg "
+            f"({len(report['cameras'])} cameras)"
+        )
     lines = [
         f"{plan.source_dataset} ({plan.layout} layout {plan.layout_version}) at {plan.source_root}",
         f"  {len(plan.subjects)} subjects, {plan.view_count} views, {len(refused)} refused while planning",
-        *_listed(refused),
-        f"  tracking: {sum(len(t.alignments) for t in tasks)} frames aligned, {failed} without a usable mesh; "
-        f"native vs tracker cameras agree to {worst_mm:.3f} mm / {worst_deg:.4f} deg",
-        *_listed(alignment_failures(tasks)),
+        *_listed(refused, limit),
+        tracking,
+        *_listed(alignment_failures(tasks), limit),
+        *fit_residual_lines(report),
+        *[f"  tracking frames: {p}" for p in sorted({t.frame_pairing for t in tasks if t.frame_pairing})],
     ]
     worst = sorted(report["cameras"].items(), key=lambda item: -item[1]["centre_mm"])
     for camera, entry in worst[:5]:
@@ -436,14 +573,34 @@ def found_lines(plan: DatasetPlan, settings: IngestSettings, tasks: list[Subject
         lines.append(
             "  light rig: cannot be placed, no frame could be aligned; the ingest stops before writing"
         )
+    sizes = Counter(f"{v.camera.width}x{v.camera.height}" for s in plan.subjects for v in s.views)
+    if sizes:
+        lines.append(
+            f"  image sizes: {listed_values([f'{k} ({n} views)' for k, n in sorted(sizes.items())])}"
+        )
     for key, value in sorted(plan.found.items()):
-        text = ", ".join(map(str, value)) if isinstance(value, (list, tuple)) else str(value)
-        lines.append(f"  {key}: {text[:200]}")
+        lines.append(f"  {key}: {listed_values(value)}")
     lines.append(
         f"  output: {plan.view_count} images of {settings.out_size}x{settings.out_size} ({settings.encoding}), "
         f"about {estimate_bytes(plan.view_count, settings.out_size, settings.encoding) / 1e6:.1f} MB"
     )
     return lines
+
+
+def nothing_to_write(plan: DatasetPlan, tasks: list[SubjectTask]) -> str | None:
+    """Why an ingest of ``plan`` would write no row (no view, or no view of an aligned frame), naming the
+    first reason; None when some view can be written."""
+    if any(int(v.frame) in t.alignments for t in tasks for v in t.plan.views):
+        return None
+    unplaceable = rig_unplaceable(plan, tasks)  # an OLAT capture says why in the light rig's terms
+    if unplaceable:
+        return unplaceable
+    reasons = planning_reasons(plan) + alignment_failures(tasks)
+    first = f"; first: {reasons[0]}" if reasons else ""
+    what = (
+        "no view was found" if not plan.view_count else "no view belongs to a frame aligned with the tracking"
+    )
+    return f"{plan.source_root}: nothing to write, {what} ({len(reasons)} refusals and failed frames{first})"
 
 
 def run_tasks(
@@ -489,6 +646,9 @@ def ingest_dataset(
     template: Path | None = None,
     encoding: str | None = None,
     prepared: tuple[IngestSettings, Template, list[SubjectTask]] | None = None,
+    tracking_options: TrackingOptions | None = None,
+    accepted_checks: tuple[str, ...] = (),
+    checks: CheckReport | None = None,
 ) -> IngestSummary:
     """Turn ``plan`` into ``out_root/<plan.dataset>/``; resumes an interrupted run of the same config.
 
@@ -499,12 +659,31 @@ def ingest_dataset(
         workers, executor: ``"local"`` (process pool) or ``"ray"``; one task per subject.
         template: the template OBJ (default: found next to the tracking export).
         prepared: the result of :func:`prepare` when the caller already ran it (the CLI prints it first).
+        tracking_options: what the user states about the tracking (:class:`TrackingOptions`).
+        accepted_checks: convention checks not to apply (:mod:`.checks`); recorded in the manifest.
+        checks: the convention checks' report when the caller already ran them on ``prepared``.
+    Raises:
+        ConventionError: a convention check found a dataset-level mistake; nothing is written.
     """
 
     start = time.perf_counter()
     settings, loaded, tasks = prepared or prepare(
-        plan, Path(tracking_dir) if tracking_dir else None, preset, template, encoding, workers, executor
+        plan,
+        Path(tracking_dir) if tracking_dir else None,
+        preset,
+        template,
+        encoding,
+        workers,
+        executor,
+        tracking_options,
     )
+    empty = nothing_to_write(plan, tasks)
+    if empty:
+        raise InputError(empty)
+    checks = checks or check_tasks(tasks, loaded, accepted_checks)
+    checks.raise_for_stops(plan.source_root)
+    refuse_checked_views(tasks, checks)
+    settings = replace(settings, accepted_checks=checks.accepted)
     lights, light_facts = _lights(plan, tasks)
     lighting = (
         f"OLAT light stage: {len(lights)} point lights (lights.arrow) and full-on frames"
@@ -520,9 +699,11 @@ def ingest_dataset(
             source_dataset=plan.source_dataset,
             licence=plan.licence,
             tracker=TRACKER_NAME if tracking_dir is not None else SHIPPED_TRACKER_NAME,
-            template=f"{TEMPLATE_NAME} sha256:{loaded.sha256}",
+            template=f"{TEMPLATE_NAME} sha256:{loaded.sha256}"
+            + ("" if loaded.neck_mask_path else " (no neck mask: --no-neck-mask, masks include the neck)"),
         ),
         config_fingerprint=_fingerprint(plan, settings, loaded),
+        accepted_checks=checks.accepted,
     )
     dataset_dir = Path(out_root) / plan.dataset
     writer = ShardWriter(dataset_dir, info)
@@ -556,6 +737,11 @@ def ingest_dataset(
     if plan.refusals:
         reasons["plan"] = reasons.get("plan", 0) + len(plan.refusals)
     cameras = report["alignment"]["cameras"].values()
+    if manifest.counts["images"] == 0:
+        raise InputError(
+            f"{dataset_dir}: no row was written, every view was quarantined ({manifest.quarantined} items; "
+            f"the reasons are in {dataset_dir / QUARANTINE_NAME})"
+        )
     total_bytes = sum(entry.bytes for entry in manifest.shards)
     return IngestSummary(
         dataset=plan.dataset,
@@ -570,4 +756,5 @@ def ingest_dataset(
         camera_disagreement_mm=max((c["centre_mm"] for c in cameras), default=0.0),
         camera_disagreement_deg=max((c["angle_deg"] for c in cameras), default=0.0),
         reasons=reasons,
+        tracker_cameras=len(cameras),
     )

@@ -18,6 +18,7 @@ import numpy as np
 
 from relightanyone.align.geometry import camera_centre
 from relightanyone.compiled import load_extension
+from relightanyone.format.schema import PADDING_WEIGHT_TOLERANCE
 from relightanyone.render.camera import crop_intrinsics, resize_intrinsics
 
 # Largest ratio of the remapped crop's side to the output's when downscaling (memory: out² · k² pixels).
@@ -149,16 +150,22 @@ def crop_resize_intrinsics(K: Any, box: Any, out_size: int) -> np.ndarray:
     return resize_intrinsics(crop_intrinsics(K, x0, y0), scale, scale)
 
 
-def _resample(image: np.ndarray, K: np.ndarray, dist: np.ndarray, K_out: np.ndarray, size: int) -> np.ndarray:
-    """One remap from the distorted source into the pinhole camera ``K_out`` with a ``size²`` image."""
+def _resample(
+    images: list[np.ndarray], K: np.ndarray, dist: np.ndarray, K_out: np.ndarray, size: int
+) -> list[np.ndarray]:
+    """One remap of each of ``images`` (the same source size) from the distorted source into the pinhole
+    camera ``K_out`` with a ``size²`` image; the map is built once for all of them."""
     import cv2
 
     map_x, map_y = cv2.initUndistortRectifyMap(
         K, dist if dist.size else None, np.eye(3), K_out, (size, size), cv2.CV_32FC1
     )
-    return cv2.remap(
-        image, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
-    )
+    return [
+        cv2.remap(
+            image, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        )
+        for image in images
+    ]
 
 
 def _shifted_crop(image: np.ndarray, box: Any) -> np.ndarray:
@@ -197,6 +204,28 @@ def undistort_crop_resize(
     Returns:
         ``(out (out_size, out_size[, C]) same dtype, K_new (3, 3))``.
     """
+    out, K_new, _ = _undistort_crop_resize(image, K, dist, box, out_size, with_valid=False)
+    return out, K_new
+
+
+def undistort_crop_resize_valid(
+    image: np.ndarray, K: Any, dist: Any, box: Any, out_size: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`undistort_crop_resize` and the output's valid pixels, ``(out_size, out_size)`` bool: those
+    whose value comes from the source alone, less than ``PADDING_WEIGHT_TOLERANCE`` of their resampling
+    weight on the zero padding past the source's edge.
+
+    Exact for every path of the resampler, because an all-ones source goes through the same remap (the
+    same map) and the same area resize: a pixel is valid where that gives 1. A crop at least one pixel
+    inside the image of a camera without distortion (every bilinear tap inside) is all valid at once.
+    """
+    return _undistort_crop_resize(image, K, dist, box, out_size, with_valid=True)
+
+
+def _undistort_crop_resize(
+    image: np.ndarray, K: Any, dist: Any, box: Any, out_size: int, with_valid: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Both of the above: ``(out, K_new, valid or None)``."""
     import cv2
 
     img = np.asarray(image)
@@ -209,18 +238,33 @@ def undistort_crop_resize(
     out_size = int(out_size)
     K, dist = _as_K(K), _as_dist(dist)
     K_new = crop_resize_intrinsics(K, box, out_size)
-    side = int(box[2]) - int(box[0])
+    x0, y0, x1, y1 = (int(v) for v in box)
+    side = x1 - x0
+    height, width = img.shape[:2]
+    inside = not dist.any() and x0 >= 1 and y0 >= 1 and x1 <= width - 1 and y1 <= height - 1
+    coverage = with_valid and not inside
+    # A source of 255s through the same remap stays 255 exactly where every bilinear tap is inside:
+    # OpenCV's bilinear weights are multiples of 1/32, so any weight outside takes at least 8 codes off.
+    full = [np.full((height, width), 255, np.uint8)] if coverage else []
+    covered = None  # (out_size, out_size) float32: each output pixel's weight on the source
     # Integer images are resampled in float32 and rounded once, after the averaging.
     work = img if np.issubdtype(img.dtype, np.floating) else img.astype(np.float32)
     if side > out_size:
         fine = min(side, out_size * MAX_SUPERSAMPLING)
         if fine == side and not dist.any():
-            out = _shifted_crop(work, box)
+            out = cv2.resize(_shifted_crop(work, box), (out_size, out_size), interpolation=cv2.INTER_AREA)
+            if coverage:
+                covered = _sliced_coverage(box, width, height, out_size)
         else:
-            out = _resample(work, K, dist, crop_resize_intrinsics(K, box, fine), fine)
-        out = cv2.resize(out, (out_size, out_size), interpolation=cv2.INTER_AREA)
+            out, *taps = _resample([work, *full], K, dist, crop_resize_intrinsics(K, box, fine), fine)
+            out = cv2.resize(out, (out_size, out_size), interpolation=cv2.INTER_AREA)
+            if coverage:
+                inside_taps = (taps[0] == 255).astype(np.float32)
+                covered = cv2.resize(inside_taps, (out_size, out_size), interpolation=cv2.INTER_AREA)
     else:
-        out = _resample(work, K, dist, K_new, out_size)
+        out, *taps = _resample([work, *full], K, dist, K_new, out_size)
+        if coverage:
+            covered = (taps[0] == 255).astype(np.float32)
     if out.ndim == 2 and img.ndim == 3:
         out = out[:, :, None]  # OpenCV drops a single channel axis
     if np.issubdtype(img.dtype, np.integer):
@@ -228,7 +272,28 @@ def undistort_crop_resize(
         out = np.clip(np.round(out), 0, limit).astype(img.dtype)
     else:
         out = out.astype(img.dtype, copy=False)
-    return out, K_new
+    if not with_valid:
+        return out, K_new, None
+    if covered is None:
+        return out, K_new, np.ones((out_size, out_size), dtype=bool)
+    return out, K_new, covered >= 1.0 - PADDING_WEIGHT_TOLERANCE
+
+
+def _sliced_coverage(box: Any, width: int, height: int, out_size: int) -> np.ndarray:
+    """``(out_size, out_size)`` float32: each output pixel's weight on the ``width × height`` source when
+    the square ``box`` is sliced and area-resized. The area filter's weights are products of a weight
+    along x and one along y, so two 1-D area resizes of the box's in-image indicator give it exactly."""
+    import cv2
+
+    x0, y0, x1, _ = (int(v) for v in box)
+    side = x1 - x0
+    per_axis = []
+    for start, limit in ((x0, width), (y0, height)):
+        pixels = np.arange(start, start + side)
+        indicator = ((pixels >= 0) & (pixels < limit)).astype(np.float32)[None]
+        per_axis.append(cv2.resize(indicator, (out_size, 1), interpolation=cv2.INTER_AREA)[0])
+    along_x, along_y = per_axis
+    return along_y[:, None] * along_x[None, :]
 
 
 def _pixel_rays(

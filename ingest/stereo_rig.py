@@ -241,6 +241,7 @@ def _plan_subject(
 ) -> SubjectPlan:
     subject = check_name(folder.name, "subject", str(folder))
     plan = SubjectPlan(subject=subject, split=options.split_of(subject), views=[])
+    plan.rig_w2c = {name: camera.w2c for name, camera in cameras.items()}
     present = {p.stem: p for p in sorted(folder.glob("*.dng"))}
     for name in sorted(set(present) - set(cameras)):
         if options.keeps_camera(name):

@@ -17,6 +17,7 @@ import numpy as np
 from relightanyone.align.geometry import transform_points, w2c_to_canonical
 from relightanyone.format.codecs import encode_image, encode_mask
 from relightanyone.format.schema import MeshRow, QuarantineEntry, build_image_row
+from relightanyone.ingest.checks import Finding, ImageCheck, view_item
 from relightanyone.ingest.decode import (
     DecodeError,
     TaskDecoder,
@@ -29,6 +30,7 @@ from relightanyone.ingest.steps import (
     crop_box_around_points,
     project_points,
     undistort_crop_resize,
+    undistort_crop_resize_valid,
 )
 from relightanyone.ingest.tracking import (
     AlignmentError,
@@ -51,6 +53,7 @@ class IngestSettings:
     margin: float
     encoding: str
     video_threads: int = 1  # FFmpeg threads per task; not part of the dataset's fingerprint
+    accepted_checks: tuple[str, ...] = ()  # convention checks overridden on purpose (--accept-check)
 
 
 @dataclass
@@ -61,6 +64,8 @@ class SubjectTask:
     plan: SubjectPlan
     alignments: dict[int, FrameAlignment]
     failures: dict[int, str]
+    frame_pairing: str = ""  # how the tracking's timesteps pair with native frames (empty: shipped meshes)
+    refused_views: dict[str, str] = field(default_factory=dict)  # item -> why a convention check refused it
 
 
 @dataclass
@@ -107,14 +112,15 @@ def normalize_view(
     mesh: FrameMesh,
     out_size: int,
     margin: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int, int]]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int, int]]:
     """Steps 3-6 for one calibrated image.
 
     Args:
         image: ``(H, W, 3)`` float32 colour-calibrated linear RGB; alpha: ``(H, W)`` in [0, 1] or None.
         mesh: the canonical tracked mesh of the view's frame.
     Returns:
-        ``(image (S, S, 3) float32, mask (S, S) float32, K (3, 3), w2c (4, 4), crop box)``.
+        ``(image (S, S, 3) float32, mask (S, S) float32, valid (S, S) bool, K (3, 3), w2c (4, 4), crop
+        box)``; the mask is zero wherever ``valid`` is not (the zero padding of a crop past the image).
     """
 
     camera = view.camera
@@ -127,14 +133,14 @@ def normalize_view(
     w2c = w2c_to_canonical(camera.w2c, alignment.canonical_from_native)
     # The crop is taken from the undistorted image, whose pinhole camera is K itself.
     box = crop_box_around_points(project_points(mesh.crop_points, camera.K, w2c), (width, height), margin)
-    out, K_new = undistort_crop_resize(image, camera.K, camera.dist, box, out_size)
-    mask = mesh.silhouette.mask(K_new, w2c, out_size).astype(np.float32)
+    out, K_new, valid = undistort_crop_resize_valid(image, camera.K, camera.dist, box, out_size)
+    mask = (mesh.silhouette.mask(K_new, w2c, out_size) & valid).astype(np.float32)
     if alpha is not None:
         if alpha.shape != (height, width):
             raise ValueError(f"alpha map is {alpha.shape[1]}x{alpha.shape[0]}, image is {width}x{height}")
         alpha_out, _ = undistort_crop_resize(alpha.astype(np.float32), camera.K, camera.dist, box, out_size)
         mask *= np.clip(alpha_out.reshape(out_size, out_size), 0.0, 1.0)
-    return out, mask, K_new, w2c, box
+    return out, mask, valid, K_new, w2c, box
 
 
 def configure_task_threads(video_threads: int = 1) -> None:
@@ -183,10 +189,14 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
         views = sorted(plan.views, key=lambda v: (v.frame, v.camera.name, v.pattern))
         decoder.prefetch_videos(v.image for v in views if v.frame in meshes)
         seen: set[str] = set()
-        for view in views:
+        image_check = ImageCheck(task, {f: m.silhouette for f, m in meshes.items()}, settings.accepted_checks)
+        for view in image_check.passes(views, decoder.prefetch_videos):
             item = f"{plan.subject}/{view.frame:06d}/{view.camera.name}/{view.pattern}"
             if view.frame not in meshes:
                 refuse(part, item, view.source, task.failures.get(view.frame, "no tracked mesh"), "align")
+                continue
+            if item in task.refused_views:
+                refuse(part, item, view.source, task.refused_views[item], "check")
                 continue
             if item in seen:
                 refuse(part, item, view.source, f"a second image for {item} (first one kept)", "plan")
@@ -197,9 +207,11 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
             except DecodeError as error:
                 refuse(part, item, view.source, str(error), "decode")
                 continue
+            if image_check.holds(view, item, image):
+                continue
             try:
                 image = apply_colour_calibration(image, view.colour)
-                out, mask, K, w2c, box = normalize_view(
+                out, mask, valid, K, w2c, box = normalize_view(
                     view,
                     image,
                     alpha,
@@ -228,10 +240,38 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
                 source=view.source,
                 source_sha256=sha256,
                 crop=box,
-                colour_matrix=view.colour.matrix,
+                colour_matrix=view.colour.applied_matrix(),
+                valid=valid,
             )
             part.add(row)
             seen.add(item)
             result.rows += 1
             result.bytes += len(row.image) + len(row.mask)
+        for held_item, held_source, reason in image_check.refusals():
+            refuse(part, held_item, held_source, f"check silhouette: {reason}", "check")
     return result
+
+
+def check_images(settings: IngestSettings, task: SubjectTask, frames: int | None = None) -> list[Finding]:
+    """The image check of a task's views, writing nothing: every frame (``doctor``) or the first ``frames``
+    aligned frames (a dry run). One finding per view that fails, its item to quarantine."""
+    template = load_template(
+        Path(settings.template_path), settings.neck_mask_path and Path(settings.neck_mask_path)
+    )
+    aligned = sorted(task.alignments.items())[:frames]
+    silhouettes = {
+        f: FrameMesh.from_vertices(canonical_mesh(a, template), template).silhouette for f, a in aligned
+    }
+    check = ImageCheck(task, silhouettes, settings.accepted_checks)
+    views = sorted(task.plan.views, key=lambda v: (v.frame, v.camera.name, v.pattern))
+    with TaskDecoder(settings.source_root) as decoder:
+        for view in views:
+            if view.frame not in silhouettes or view.pattern != "full":
+                continue
+            try:
+                image, _ = decoder.decode(view.image)
+            except DecodeError:
+                continue  # the ingest quarantines it with the decoder's reason
+            check.holds(view, view_item(view), image)
+    refused, _ = check.decide()
+    return [Finding("silhouette", "view", reason, (item,)) for item, _, reason in refused]

@@ -14,6 +14,11 @@ shape would shrink or grow the subject's head towards the template's size. The r
 subject's own ``canonical.obj`` when the export has one (VHAP's mesh mode writes the tracked shape in the
 unposed head frame) and the template otherwise; the fit uses the vertices above the neck line, which
 move with the skull.
+
+Each tracked timestep (``timestep_index_original``) is paired with a native frame of the capture by
+:func:`timestep_mapping`, from evidence: the rate the user or the export states, checked against the
+video's length, or timesteps that only one reading fits; an ambiguous or impossible pairing stops the
+ingest (:class:`TrackingMismatchError`) instead of mispairing frames.
 """
 
 from __future__ import annotations
@@ -42,10 +47,113 @@ TRANSFORMS_NAME = "transforms.json"
 NECK_MASK_NAMES = ("neck_mask.txt", "template_neck_mask.txt")
 TEMPLATE_NAMES = ("template.obj", "template/template.obj")
 MIN_SHARED_CAMERAS = 3
+# VHAP's video preprocessing extracts frames with ffmpeg's fps filter at this rate unless told otherwise.
+VHAP_DEFAULT_FPS = 25.0
+VHAP_MESH_MODE_FLAG = "--flame-mode mesh"
 
 
 class AlignmentError(InputError):
     """A frame cannot be brought into canonical space; the message names the subject, frame and cause."""
+
+
+class TrackingMismatchError(InputError):
+    """A tracking export cannot be paired with the capture (its timesteps with the native frames, or its
+    export mode); the whole ingest stops, since pairing by guess would mispair every frame."""
+
+
+@dataclass(frozen=True)
+class TrackingOptions:
+    """What the user states about the tracking on the command line."""
+
+    tracking_fps: float | None = None  # --tracking-fps: rate the tracked frames were extracted at
+    no_neck_mask: bool = False  # --no-neck-mask: accept a template without its neck mask (no neck cut)
+
+
+@dataclass(frozen=True)
+class TimestepMapping:
+    """How a tracked timestep (``timestep_index_original``) pairs with a native frame of the capture:
+    ``native = round(timestep * scale)``; ``evidence`` says how that was established."""
+
+    scale: float
+    evidence: str
+
+    def native(self, timestep: int) -> int:
+        return int(math.floor(timestep * self.scale + 0.5))
+
+
+def _fps(value: float) -> str:
+    return f"{value:g} fps"
+
+
+def timestep_mapping(
+    timesteps: list[int],
+    export_fps: float | None,
+    frame_rate: float | None,
+    frame_count: int | None,
+    options: TrackingOptions,
+    where: str,
+) -> TimestepMapping:
+    """Establish how the tracked ``timesteps`` pair with native frames, from evidence, or stop.
+
+    ``export_fps``: the frame rate the export states (its ``fps`` key), if any; ``frame_rate`` and
+    ``frame_count``: the capture's native video rate and length from its container (None for captures of
+    still images, whose tracking names native frames). A stated rate (``--tracking-fps`` first) is
+    checked against the video's length; without one, the tracking must be unambiguous: timesteps that
+    VHAP's default 25 fps extraction could also have produced stop the ingest with the flag to pass.
+    Raises :class:`TrackingMismatchError` naming the cause.
+    """
+    stated, source = (
+        (options.tracking_fps, "--tracking-fps")
+        if options.tracking_fps
+        else (export_fps, f"the 'fps' of {where}")
+        if export_fps
+        else (None, "")
+    )
+    if frame_rate is None or frame_rate <= 0:
+        ignored = f"; {source} does not apply" if stated is not None else ""
+        return TimestepMapping(
+            1.0, f"timesteps are native frame numbers (the capture has no video frame rate{ignored})"
+        )
+    last = max(timesteps, default=0)
+    if stated is not None:
+        if stated > frame_rate + 1e-9:
+            raise TrackingMismatchError(
+                f"{where}: the tracking is said to run at {_fps(stated)} ({source}), faster than the "
+                f"{_fps(frame_rate)} video it was made from"
+            )
+        mapping = TimestepMapping(
+            frame_rate / stated,
+            f"native frame = round(timestep x {frame_rate:g} / {stated:g}): {_fps(stated)} tracking ({source}) "
+            f"of the {_fps(frame_rate)} video",
+        )
+        if frame_count is not None and mapping.native(last) >= frame_count:
+            raise TrackingMismatchError(
+                f"{where}: timestep {last} at {_fps(stated)} ({source}) is native frame {mapping.native(last)}, "
+                f"past the video's {frame_count} frames: the tracking was not made at that rate from this video"
+            )
+        return mapping
+    if len(set(timesteps)) <= 1:
+        return TimestepMapping(1.0, "timesteps are native frame numbers (a single tracked timestep)")
+    if frame_count is None:
+        return TimestepMapping(1.0, "timesteps are native frame numbers (the video's length is unknown)")
+    if last >= frame_count:
+        raise TrackingMismatchError(
+            f"{where}: tracked timestep {last} is past the video's {frame_count} frames; pass --tracking-fps "
+            f"with the rate the tracked frames were extracted at"
+        )
+    extracted = TimestepMapping(frame_rate / VHAP_DEFAULT_FPS, "").native(last)
+    if frame_rate > VHAP_DEFAULT_FPS and extracted < frame_count:
+        raise TrackingMismatchError(
+            f"{where}: cannot tell how the tracked timesteps pair with the {_fps(frame_rate)} video of "
+            f"{frame_count} frames: timesteps 0..{last} are native frames 0..{last} if every frame was tracked, "
+            f"or native frames 0..{extracted} if the frames were extracted at VHAP's default "
+            f"{_fps(VHAP_DEFAULT_FPS)}; pass --tracking-fps {VHAP_DEFAULT_FPS:g} or --tracking-fps {frame_rate:g}"
+        )
+    return TimestepMapping(
+        1.0,
+        f"timesteps are native frame numbers (timestep {last} is past the end of a "
+        f"{_fps(VHAP_DEFAULT_FPS)} extraction of the {frame_count}-frame video)",
+    )
 
 
 @dataclass(frozen=True)
@@ -149,6 +257,7 @@ class VhapSubject:
     canonical_mesh: Path | None = None
     mesh_scale: float = 1.0  # mesh coordinates -> metres of the tracker world
     native_world: bool = False  # meshes are in the native world already (no camera fit needed)
+    mapping: TimestepMapping = field(default_factory=lambda: TimestepMapping(1.0, "native frame numbers"))
 
     def mesh_for_frame(self, frame: int) -> Path | None:
         """The tracked mesh of native ``frame``; a single-timestep export (static head) serves every frame."""
@@ -157,6 +266,17 @@ class VhapSubject:
         if len(set(self.meshes.values())) == 1:
             return next(iter(self.meshes.values()))
         return None
+
+    def untracked_reason(self, frame: int) -> str:
+        """Why native ``frame`` has no mesh, with the frames that are tracked and how they were paired."""
+        tracked = sorted(self.meshes)
+        shown = ", ".join(map(str, tracked[:8])) + (
+            f" ... ({len(tracked)} frames)" if len(tracked) > 8 else ""
+        )
+        return (
+            f"native frame {frame} is not tracked: the tracking export {self.folder} has meshes for native "
+            f"frames {shown or 'none'} ({self.mapping.evidence})"
+        )
 
 
 def _integer(entry: dict, field: str, where: str) -> int:
@@ -182,16 +302,36 @@ def _native_frame(entry: dict, where: str) -> int:
     raise InputError(f"{where}: frame has no timestep_index_original, timestep_id or timestep_index")
 
 
-def read_vhap_subject(folder: Path) -> VhapSubject:
+def check_export_mode(folder: Path) -> None:
+    """Raise :class:`TrackingMismatchError` when ``folder`` is a VHAP export in parameter mode (FLAME
+    parameters per timestep, no ``meshes/``): the toolkit reads tracked meshes, not FLAME parameters."""
+    folder = Path(folder)
+    if (folder / "meshes").is_dir() or not (folder / "flame_param").is_dir():
+        return
+    raise TrackingMismatchError(
+        f"{folder}: a VHAP export in parameter mode (flame_param/*.npz, no meshes/), VHAP's default; the "
+        f"toolkit reads tracked meshes: export again with VHAP's export_as_nerf_dataset.py {VHAP_MESH_MODE_FLAG}"
+    )
+
+
+def read_vhap_subject(
+    folder: Path,
+    frame_rate: float | None = None,
+    frame_count: int | None = None,
+    options: TrackingOptions | None = None,
+) -> VhapSubject:
     """Read ``<folder>/transforms.json`` and find ``meshes/{t:05d}.obj`` (VHAP's export, ``docs/ingest.md``).
 
     Cameras come from :func:`relightanyone.ingest.calibration.from_transforms_json` (OpenGL
-    camera-to-world and flipped ``cy`` undone there), one per ``camera_id``.
+    camera-to-world and flipped ``cy`` undone there), one per ``camera_id``. Each frame's timestep
+    (``timestep_index_original``) is paired with a native frame by :func:`timestep_mapping`, from the
+    capture's ``frame_rate`` and ``frame_count`` (a video's; None for still images).
     """
     folder = Path(folder)
     path = folder / TRANSFORMS_NAME
     if not path.is_file():
         raise FileNotFoundError(f"{path} is missing: expected a VHAP export ({TRANSFORMS_NAME} + meshes/)")
+    check_export_mode(folder)
     document, _ = load_json(path)
     rig = from_transforms_json(document, per="camera", name=path)  # checks 'frames' and every camera
     cameras = {}
@@ -203,19 +343,31 @@ def read_vhap_subject(folder: Path) -> VhapSubject:
             width=int(rig.width[i]),
             height=int(rig.height[i]),
         )
-    meshes: dict[int, Path] = {}
+    meshes_by_timestep: dict[int, Path] = {}
     for i, entry in enumerate(document["frames"]):
         where = f"{path} frames[{i}]"
-        frame = _native_frame(entry, where)
+        timestep = _native_frame(entry, where)
         relative = entry.get("mesh_path")
         if relative is None:
             index = _integer(entry, "timestep_index", where) if "timestep_index" in entry else 0
             relative = f"meshes/{index:05d}.obj"
         if not isinstance(relative, str):
             raise InputError(f"{where}: field 'mesh_path' must be a path, got {relative!r}")
-        meshes.setdefault(frame, folder / relative)
+        meshes_by_timestep.setdefault(timestep, folder / relative)
+    export_fps = document.get("fps")
+    if export_fps is not None and (not isinstance(export_fps, (int, float)) or export_fps <= 0):
+        raise InputError(f"{path}: field 'fps' must be a positive frame rate, got {export_fps!r}")
+    mapping = timestep_mapping(
+        sorted(meshes_by_timestep),
+        export_fps,
+        frame_rate,
+        frame_count,
+        options or TrackingOptions(),
+        str(path),
+    )
+    meshes = {mapping.native(t): mesh for t, mesh in meshes_by_timestep.items()}
     canonical = folder / "canonical.obj"
-    return VhapSubject(folder, cameras, meshes, canonical if canonical.is_file() else None)
+    return VhapSubject(folder, cameras, meshes, canonical if canonical.is_file() else None, mapping=mapping)
 
 
 @dataclass(frozen=True)
@@ -308,9 +460,7 @@ def align_frame(
     """Chain the two fits for one (subject, frame); raises :class:`AlignmentError` naming the cause."""
     mesh_path = vhap.mesh_for_frame(frame)
     if mesh_path is None:
-        raise AlignmentError(
-            f"subject {subject} frame {frame}: the tracking export {vhap.folder} has no mesh for this frame"
-        )
+        raise AlignmentError(f"subject {subject} frame {frame}: {vhap.untracked_reason(frame)}")
     try:
         tracked = read_obj_vertices(mesh_path, template.vertex_count) * vhap.mesh_scale
     except ValueError as error:
@@ -356,23 +506,30 @@ def align_subject(
     native_w2c_by_frame: dict[int, dict[str, np.ndarray]],
     tracking: Path | VhapSubject,
     template: Template,
-) -> tuple[dict[int, FrameAlignment], dict[int, str]]:
-    """Align every frame of a subject: ``({frame: FrameAlignment}, {frame: reason it failed})``.
+    clock: tuple[float | None, int | None] = (None, None),
+    options: TrackingOptions | None = None,
+) -> tuple[dict[int, FrameAlignment], dict[int, str], str]:
+    """Align every frame of a subject: ``({frame: FrameAlignment}, {frame: reason it failed}, how the
+    tracked timesteps pair with native frames)``.
 
     ``native_w2c_by_frame``: frame -> camera name -> native ``w2c (4, 4)`` (metres, head pose folded).
-    ``tracking``: the subject's VHAP export folder, or an already built :class:`VhapSubject`. A missing
-    tracking folder fails every frame with the path in the reason.
+    ``tracking``: the subject's VHAP export folder, or an already built :class:`VhapSubject`.
+    ``clock``: the capture's native frame rate and frame count (a video's), for :func:`timestep_mapping`.
+    A missing tracking folder fails every frame with the path in the reason; a tracking that cannot be
+    paired with the capture raises :class:`TrackingMismatchError`.
     """
     failures: dict[int, str] = {}
     alignments: dict[int, FrameAlignment] = {}
     try:
-        vhap = tracking if isinstance(tracking, VhapSubject) else read_vhap_subject(tracking)
+        vhap = tracking if isinstance(tracking, VhapSubject) else read_vhap_subject(tracking, *clock, options)
+    except TrackingMismatchError:
+        raise
     except (OSError, ValueError, KeyError) as error:
-        return {}, {frame: f"subject {subject}: {error}" for frame in native_w2c_by_frame}
+        return {}, {frame: f"subject {subject}: {error}" for frame in native_w2c_by_frame}, ""
     reference = subject_reference(vhap, template)
     for frame, native in sorted(native_w2c_by_frame.items()):
         try:
             alignments[frame] = align_frame(subject, frame, native, vhap, template, reference)
         except AlignmentError as error:
             failures[frame] = str(error)
-    return alignments, failures
+    return alignments, failures, vhap.mapping.evidence

@@ -231,6 +231,14 @@ def train_stage1_command(
     "forward pass of those networks per step; the same gradients).",
 )
 @loader_workers_option()
+@click.option(
+    "--accumulation",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Split each batch into this many micro-batches and accumulate their gradients (less memory, the "
+    "same update; see `relightanyone plan`).",
+)
 def train_stage2_command(
     data,
     stage1_run,
@@ -246,6 +254,7 @@ def train_stage2_command(
     precision,
     checkpoint_maps,
     loader_workers,
+    accumulation,
 ) -> None:
     """Train stage 2 (relighting UNet on a frozen stage-1 run) or the single-stage baseline.
 
@@ -272,6 +281,7 @@ def train_stage2_command(
         precision=precision,
         checkpoint_maps=checkpoint_maps,
         loader_workers=loader_workers,
+        accumulation=accumulation,
     )
     metrics = train_stage2(config)
     last = metrics.get("last_losses") or {}

@@ -4,9 +4,12 @@ Layout of the export folder::
 
     <subject>/<frame:06d>/<camera>/<pattern>.exr        linear RGB, OpenEXR (float32 or half, ZIP)
     <subject>/<frame:06d>/<camera>/<pattern>.mask.png   the stored 8-bit mask, 255 = foreground
+    <subject>/<frame:06d>/<camera>/<pattern>.valid.png  8-bit, 255 where the pixel came from the source
+                                                        image, 0 on the zero padding of a crop past its edge
     cameras.json     one row per image: key, subject, frame, camera, pattern, split, width, height,
-                     K (3x3, pixels of the stored image), w2c (4x4, OpenCV, metres), crop, colour_matrix,
-                     image and mask file names relative to the export folder
+                     K (3x3, pixels of the stored image), w2c (4x4, OpenCV, metres), crop,
+                     colour_matrix (3x4 affine already applied: rgb = M[:, :3] @ source + M[:, 3]),
+                     image, mask and valid file names relative to the export folder
     lights.json      the rig of an OLAT dataset (index, name, position_m, intensity_rgb, pattern); [] if flat
     dataset.json     name, kind, lighting, provenance, conventions, counts (written last: an export
                      without it is incomplete)
@@ -28,6 +31,7 @@ import numpy as np
 
 from relightanyone.errors import RelightAnyoneError
 from relightanyone.format.arrow_io import atomic_write_bytes
+from relightanyone.format.codecs import encode_mask
 from relightanyone.format.reader import IncompleteDatasetError, NormalizedDataset
 from relightanyone.format.schema import INDEX_NAME, MANIFEST_NAME, SchemaError, check_name
 from relightanyone.format.shards import dataset_dirs
@@ -41,6 +45,7 @@ EXPORT_CONVENTIONS = {
     "integer coordinates",
     "extrinsics": "w2c: 4x4 world-to-camera, row-major, metres, canonical head space (+y up, +z out of the face)",
     "mask": "8-bit PNG, 255 = foreground",
+    "valid": "8-bit PNG, 255 = the pixel came from the source image, 0 = zero padding past its edge",
 }
 
 
@@ -82,16 +87,16 @@ def _write_file(path: Path, data: bytes) -> None:
 
 def image_paths(
     subject: str, frame: int, camera: str, pattern: str, where: str = "image row"
-) -> tuple[str, str]:
-    """Relative (image, mask) file names of one image row in the export folder; ``UnsafeNameError`` naming
+) -> tuple[str, str, str]:
+    """Relative (image, mask, valid) file names of one image row in the export folder; ``UnsafeNameError`` naming
     ``where`` when a name is not one safe file name, so no file lands outside the folder."""
     for what, name in (("subject", subject), ("camera", camera), ("pattern", pattern)):
         check_name(name, what, where)
     folder = f"{subject}/{int(frame):06d}/{camera}"
-    return f"{folder}/{pattern}.exr", f"{folder}/{pattern}.mask.png"
+    return f"{folder}/{pattern}.exr", f"{folder}/{pattern}.mask.png", f"{folder}/{pattern}.valid.png"
 
 
-def camera_entry(row, image_file: str, mask_file: str) -> dict:
+def camera_entry(row, image_file: str, mask_file: str, valid_file: str) -> dict:
     """The ``cameras.json`` row of an image row (matrices as nested lists)."""
     return {
         "key": row.key,
@@ -108,6 +113,7 @@ def camera_entry(row, image_file: str, mask_file: str) -> dict:
         "colour_matrix": np.asarray(row.colour_matrix, dtype=np.float64).tolist(),
         "image": image_file,
         "mask": mask_file,
+        "valid": valid_file,
     }
 
 
@@ -171,12 +177,13 @@ def _write_export(
     cameras = []
     for key in progress_bar(keys, desc=f"export {dataset.name}", unit="image", disable=not progress):
         row, image, _ = dataset.decoded(key)
-        image_file, mask_file = image_paths(
+        image_file, mask_file, valid_file = image_paths(
             row.subject, row.frame, row.camera, row.pattern, where=f"{dataset.path} row {key!r}"
         )
         _write_file(out / image_file, encode_exr(image, precision))
         _write_file(out / mask_file, row.mask)  # already an 8-bit PNG: copied as stored
-        cameras.append(camera_entry(row, image_file, mask_file))
+        _write_file(out / valid_file, encode_mask(row.valid_pixels()))
+        cameras.append(camera_entry(row, image_file, mask_file, valid_file))
     lights = dataset.lights()
     info = dataset.manifest.info
     description = {

@@ -38,6 +38,7 @@ LAYER_CLI_MODULES = (
 COMMAND_ORDER = (
     "synth",
     "synth-preview",
+    "doctor",
     "ingest",
     "validate",
     "inspect",

@@ -32,8 +32,9 @@ from relightanyone.errors import InputError
 LOCK_NAME = ".lock"
 _HOLDER_CHARS = 300  # of the holder's line shown in a refusal
 
-# resolved lock file -> its locked descriptor, for the locks this process holds
-_HELD: dict[Path, int] = {}
+# resolved lock file -> (pid, locked descriptor) of the locks this process holds; a forked child inherits
+# the entries of its parent, which are not its own: it can neither re-take nor release them.
+_HELD: dict[Path, tuple[int, int]] = {}
 _HELD_LOCK = threading.Lock()
 
 
@@ -82,12 +83,12 @@ def acquire_output_lock(folder: Path, name: str = LOCK_NAME) -> bool:
     folder.mkdir(parents=True, exist_ok=True)
     key = folder.resolve() / name
     with _HELD_LOCK:
-        if key in _HELD:
+        if _HELD.get(key, (None,))[0] == os.getpid():
             return False
         fd = _open_locked(key)
         os.ftruncate(fd, 0)
         os.pwrite(fd, (holder_line() + "\n").encode("utf-8"), 0)
-        _HELD[key] = fd
+        _HELD[key] = (os.getpid(), fd)
         return True
 
 
@@ -95,9 +96,10 @@ def release_output_lock(folder: Path, name: str = LOCK_NAME) -> None:
     """Remove and unlock ``folder``'s lock file ``name`` if this process holds it."""
     key = Path(folder).resolve() / name
     with _HELD_LOCK:
-        fd = _HELD.pop(key, None)
-        if fd is None:
+        pid, fd = _HELD.get(key, (None, None))
+        if pid != os.getpid():
             return
+        del _HELD[key]
         # Removed while still locked, so a process that opened the old file sees it is gone and retries.
         with contextlib.suppress(FileNotFoundError):
             os.unlink(key)

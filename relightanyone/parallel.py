@@ -28,8 +28,10 @@ task it is running. The forkserver and the resource tracker exit by themselves o
 holds their pipes, the workers included, has ended. A task never makes its own output count either:
 a ``ShardWriter`` part written in a worker is published by the caller when the task's result arrives
 (:meth:`relightanyone.format.shards.ShardWriter.publish`), so a worker that had not yet died could not
-publish anything after its caller was killed. Ray's processes are Ray's: a local Ray stops with its
-driver, a cluster keeps running.
+publish anything after its caller was killed. The forkserver gets no parent-death signal of its own:
+the kernel ties that signal to the thread that forked, and the server is started by whichever thread
+first needs it, often the short-lived warm-up thread. Ray's processes are Ray's to manage and are not
+covered by any of this; a Ray task's part is still published only by the caller.
 
 Tasks limit their own threads (:func:`cpu_share` is a worker's share of this machine's CPUs), so
 ``workers`` tasks side by side do not oversubscribe it.

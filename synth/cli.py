@@ -33,10 +33,11 @@ def _parse_datasets(value: str) -> tuple[str, ...]:
 @click.command("synth")
 @click.option(
     "--preset",
-    type=click.Choice(["tiny", "demo", "paper"]),
+    type=click.Choice(["tiny", "demo", "reference", "paper"]),
     default="tiny",
     show_default=True,
-    help="World size: tiny (tests, seconds), demo (laptop, minutes), paper (real counts; not for a CPU).",
+    help="World size: tiny (tests, seconds), demo (laptop, minutes), reference (demo with 5 test and 2 "
+    "validation subjects per dataset), paper (real counts; not for a CPU).",
 )
 @click.option(
     "--out",

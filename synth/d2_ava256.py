@@ -9,8 +9,9 @@ Layout written under ``<out>/ava256/`` (the Ava-256 release's), one capture fold
         image/cam{id}.zip              uncompressed; members cam{id}/{frame:06d}.avif
 
 Conventions, as in the real release: ``K`` and ``T`` are stored TRANSPOSED; ``T`` is world->camera in
-millimetres; ``K`` is in pixels of the full 2668x4096-style sensor, ``SENSOR_SCALE`` times the written
-images (the sensor principal point follows the pixel-centre rule ``c_sensor = (c + 0.5) * s - 0.5``);
+millimetres; ``K`` is in pixels of the real rig's full 2668x4096 sensor, of which the written images are a
+downscale (``SENSOR`` / image size per axis, rounded like the release's ``4096 // ds, 2668 // ds``; the
+sensor principal point follows the pixel-centre rule ``c_sensor = (c + 0.5) * s - 0.5``);
 ``distortion`` holds OpenCV k1 k2 p1 p2 (k3 = 0). AVIF files hold the camera's recorded LINEAR RGB as
 8-bit codes (no transfer curve, as the real AVIFs per ava-256#32), quality 63, after a per-camera 3x3
 colour cast; no colour calibration file is written. Lighting is even: point lights spread over the whole
@@ -50,7 +51,7 @@ from relightanyone.synth.template import HeadTemplate
 from relightanyone.synth.truth import DatasetTruth, RenderedRig
 
 NATIVE_DIR = "ava256"
-SENSOR_SCALE = 4  # the calibration describes a sensor this many times larger than the written images
+SENSOR = (2668, 4096)  # (width, height) of the sensor the calibration describes, as the real rig's
 AVIF_QUALITY = 63  # the 4TB release's AVIF quality (ava-256#9)
 NEUTRAL_SEGMENT = "EXP_neutral_peak"
 OTHER_SEGMENTS = ("EXP_free_face", "EXP_jaw_open", "EXP_smile")
@@ -118,11 +119,26 @@ def even_lights(count: int) -> PointLights:
     return PointLights(positions=positions, intensities=np.full((count, 3), per_light))
 
 
-def sensor_intrinsics(K_image: np.ndarray) -> np.ndarray:
-    """K of the full sensor whose ``SENSOR_SCALE``-times downscale is ``K_image`` (pixel-centre rule)."""
+def sensor_scale(image_size: tuple[int, int]) -> tuple[float, float]:
+    """Per-axis ``SENSOR / image`` of written images of ``image_size`` (width, height); ValueError when the
+    image is no downscale of the sensor (the two axes round to different factors)."""
+    width, height = image_size
+    sx, sy = SENSOR[0] / width, SENSOR[1] / height
+    factor = sy if height >= width else sx
+    if abs(SENSOR[0] / factor - width) >= 1.0 or abs(SENSOR[1] / factor - height) >= 1.0:
+        raise ValueError(
+            f"D2 images of {width}x{height} are no downscale of the {SENSOR[0]}x{SENSOR[1]} Ava-256 sensor; "
+            f"choose a size of its aspect ratio (e.g. {round(SENSOR[0] / factor)}x{height})"
+        )
+    return sx, sy
+
+
+def sensor_intrinsics(K_image: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+    """K of the full sensor that written images of ``image_size`` (width, height) downscale (pixel-centre rule)."""
     K = np.array(K_image, dtype=np.float64)
-    K[:2, :2] *= SENSOR_SCALE
-    K[:2, 2] = (K[:2, 2] + 0.5) * SENSOR_SCALE - 0.5
+    for axis, s in enumerate(sensor_scale(image_size)):
+        K[axis, axis] *= s
+        K[axis, 2] = (K[axis, 2] + 0.5) * s - 0.5
     return K
 
 
@@ -133,7 +149,7 @@ def krt_entry(camera: SynthCamera, world_from_canonical: np.ndarray) -> dict:
         "cameraId": camera.name,
         "projectionModel": "Pinhole",
         "distortionModel": "RadialAndTangential",
-        "K": sensor_intrinsics(camera.K).T.tolist(),
+        "K": sensor_intrinsics(camera.K, (camera.width, camera.height)).T.tolist(),
         "distortion": [float(v) for v in camera.dist[:4]],
         "T": w2c_mm.T.tolist(),
     }
@@ -228,7 +244,8 @@ def generate(
     extra = {
         "captures": captures,
         "dropped_images": [dropped],
-        "sensor_scale": SENSOR_SCALE,
+        "sensor": list(SENSOR),
+        "sensor_scale": list(sensor_scale(size.image_size)),
         "image_encoding": "8-bit linear recorded RGB in AVIF (no transfer curve)",
         "head_pose_convention": "native head space = canonical space in mm; file = head(mm) -> world(mm)",
         "frame_key": "native frame id",

@@ -275,7 +275,7 @@ def generate(
 
 def expected_renders(preset: Preset) -> int:
     size = preset.d3
-    return size.cameras + (size.train_subjects + size.test_subjects) * size.cameras
+    return size.cameras + size.subjects * size.cameras
 
 
 def decode_dng(path: Path) -> np.ndarray:

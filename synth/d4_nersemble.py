@@ -212,6 +212,9 @@ def generate(
     camera_params = {
         "world_2_cam": {cam.name: native_w2c(cam.w2c, world_from_canonical).tolist() for cam in cameras},
         "intrinsics": cameras[0].K.tolist(),
+        # The size the intrinsics describe (VHAP reads these keys; without them it is the 2200x3208 frame).
+        "width": cameras[0].width,
+        "height": cameras[0].height,
     }
     colour_calibration = {
         name: np.linalg.inv(response * EXPOSURE).tolist() for name, response in responses.items()

@@ -1,13 +1,15 @@
 """Sizes of the synthetic world.
 
-One code path, three sizes: ``tiny`` serves the tests (seconds), ``demo`` is big enough for a model to
-learn something on a laptop (minutes), ``paper`` mirrors the real datasets' counts and resolutions (not
-meant for a CPU). Image sizes are (width, height) of the native files each dataset writes.
+One code path, four sizes: ``tiny`` serves the tests and the smoke-run demo (seconds), ``demo`` is big
+enough for a model to learn something on a laptop (minutes), ``reference`` is the ``demo`` world with five
+test and two validation subjects per dataset, the world of the reference evaluation (intervals over
+subjects need several), ``paper`` mirrors the real datasets' counts and resolutions (not meant for a CPU).
+Subjects are split train / validation / test; only training subjects reach training. Image sizes are (width, height) of the native files each dataset writes.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 
 @dataclass(frozen=True)
@@ -20,6 +22,17 @@ class DatasetSize:
     image_size: tuple[int, int]  # (width, height) of the written native images
     frames: int = 1  # frames per subject (head poses / video frames)
     lights: int = 0  # rig lights (D1: dome size; D2: ring; D3/D4: flashes)
+    val_subjects: int = 0  # held out for model selection and tuning; answers/ has their truth too
+
+    @property
+    def subjects(self) -> int:
+        """Every subject of the dataset: train, then validation, then test."""
+        return self.train_subjects + self.val_subjects + self.test_subjects
+
+    @property
+    def held_out_subjects(self) -> int:
+        """Subjects with answers: validation and test."""
+        return self.val_subjects + self.test_subjects
 
 
 @dataclass(frozen=True)
@@ -42,6 +55,53 @@ class Preset:
         return getattr(self, dataset)
 
 
+def with_held_out(preset: Preset, name: str, test_subjects: int, val_subjects: int) -> Preset:
+    """``preset`` renamed, with these test and validation subjects in every dataset (training unchanged)."""
+    sizes = {
+        dataset: replace(preset.size_of(dataset), test_subjects=test_subjects, val_subjects=val_subjects)
+        for dataset in preset.datasets
+    }
+    return replace(preset, name=name, **sizes)
+
+
+DEMO = Preset(
+    name="demo",
+    template_segments=72,
+    texture_size=256,
+    supersampling=1,
+    answer_lights=32,
+    envmap_count=4,
+    d1=DatasetSize(
+        train_subjects=12,
+        test_subjects=3,
+        val_subjects=1,
+        cameras=12,
+        image_size=(192, 288),
+        lights=32,
+    ),
+    d2=DatasetSize(
+        train_subjects=14,
+        test_subjects=2,
+        val_subjects=1,
+        cameras=24,
+        image_size=(167, 256),
+        frames=2,
+        lights=32,
+    ),
+    d3=DatasetSize(
+        train_subjects=8, test_subjects=2, val_subjects=1, cameras=8, image_size=(256, 192), lights=4
+    ),
+    d4=DatasetSize(
+        train_subjects=8,
+        test_subjects=2,
+        val_subjects=1,
+        cameras=16,
+        image_size=(176, 256),
+        frames=2,
+        lights=8,
+    ),
+)
+
 PRESETS: dict[str, Preset] = {
     preset.name: preset
     for preset in (
@@ -61,22 +121,8 @@ PRESETS: dict[str, Preset] = {
                 train_subjects=2, test_subjects=1, cameras=16, image_size=(110, 160), frames=2, lights=8
             ),
         ),
-        Preset(
-            name="demo",
-            template_segments=72,
-            texture_size=256,
-            supersampling=1,
-            answer_lights=32,
-            envmap_count=4,
-            d1=DatasetSize(train_subjects=12, test_subjects=3, cameras=12, image_size=(192, 288), lights=32),
-            d2=DatasetSize(
-                train_subjects=14, test_subjects=2, cameras=24, image_size=(167, 256), frames=2, lights=32
-            ),
-            d3=DatasetSize(train_subjects=8, test_subjects=2, cameras=8, image_size=(256, 192), lights=4),
-            d4=DatasetSize(
-                train_subjects=8, test_subjects=2, cameras=16, image_size=(176, 256), frames=2, lights=8
-            ),
-        ),
+        DEMO,
+        with_held_out(DEMO, "reference", test_subjects=5, val_subjects=2),
         Preset(
             name="paper",
             template_segments=160,

@@ -51,7 +51,7 @@ class DatasetTruth:
     colour_response: dict[str, np.ndarray]
     light_positions: np.ndarray  # (L, 3) canonical metres
     light_intensities: np.ndarray  # (L, 3) linear RGB
-    splits: dict[str, str]  # subject -> "train" | "test"
+    splits: dict[str, str]  # subject -> "train" | "val" | "test"
     extra: dict = field(default_factory=dict)  # dataset-specific facts (e.g. full-on frame indices)
 
     @classmethod

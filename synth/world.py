@@ -5,15 +5,15 @@
     out/faceolat/ ava256/ stereo_rig/ nersemble/     native datasets (D1..D4)
     out/tracking/<dataset>/<subject>/                VHAP-style tracking export (synth.vhap)
     out/tracking/template/                           the tracker's topology: template.obj (UVs), neck_mask.txt
-    out/splits/<native folder>.json                  published protocol: {subject: "train" | "test"}
+    out/splits/<native folder>.json                  published protocol: {subject: "train" | "val" | "test"}
     out/answers/                                     what ingest never reads and evaluation does
         template/                                    template.obj, neck_mask.txt, landmarks.json
-        splits.json                                  {dataset: {subject: "train" | "test"}}
+        splits.json                                  {dataset: {subject: "train" | "val" | "test"}}
         answer_lights.json                           the D1-rig lights of the OLAT answers (canonical)
         envmaps/<name>.exr                           10x20 lat-long maps of the relit answers
         <dataset>/truth.json                         DatasetTruth (cameras, poses, colour casts, lights ...)
         <dataset>/subjects/<subject>/                shape.obj, albedo.exr, specular_intensity.exr, roughness.exr
-        <dataset>/olat/<subject>/<camera>/<k:03d>.exr       held-out subjects under answer light k
+        <dataset>/olat/<subject>/<camera>/<k:03d>.exr       held-out (val, test) subjects under answer light k
         <dataset>/relit/<subject>/<camera>/<envmap>.exr     the same relit by each environment map
     out/world.json                                   written last: preset, seed, datasets, paths
 
@@ -86,9 +86,10 @@ def check_parameters(preset: Preset, datasets: tuple[str, ...]) -> None:
             raise ValueError(f"{where}: needs at least one camera, got {size.cameras}")
         if width < 8 or height < 8:
             raise ValueError(f"{where}: image_size must be at least 8x8 pixels, got {width}x{height}")
-        if size.train_subjects < 0 or size.test_subjects < 0 or size.train_subjects + size.test_subjects < 1:
+        if min(size.train_subjects, size.val_subjects, size.test_subjects) < 0 or size.subjects < 1:
             raise ValueError(
-                f"{where}: needs at least one subject, got {size.train_subjects}+{size.test_subjects}"
+                f"{where}: needs at least one subject, got {size.train_subjects} train + "
+                f"{size.val_subjects} val + {size.test_subjects} test"
             )
         _require_at_least(where, "frames", size.frames, 1)
         if size.lights < 1:
@@ -120,10 +121,10 @@ def prepare_output(out: Path, overwrite: bool) -> None:
 
 
 def make_subjects(preset: Preset, template: HeadTemplate, dataset: str, seed: int):
-    """The dataset's people (train first, then held-out) and their splits."""
+    """The dataset's people (train first, then validation, then test) and their splits."""
     index = list(DATASET_MODULES).index(dataset)
     size = preset.size_of(dataset)
-    count = size.train_subjects + size.test_subjects
+    count = size.subjects
     module = dataset_module(dataset)
     names_rng = np.random.default_rng([seed, index, _NAMES])
     names = (
@@ -136,8 +137,12 @@ def make_subjects(preset: Preset, template: HeadTemplate, dataset: str, seed: in
         make_subject(template, name, int(s % (2**63)), preset.texture_size)
         for name, s in zip(names, seeds, strict=True)
     ]
-    splits = {name: ("train" if k < size.train_subjects else "test") for k, name in enumerate(names)}
-    return subjects, splits
+    return subjects, dict(zip(names, subject_splits(size), strict=True))
+
+
+def subject_splits(size) -> list[str]:
+    """The split of each of a dataset's subjects, in their order: train, then val, then test."""
+    return ["train"] * size.train_subjects + ["val"] * size.val_subjects + ["test"] * size.test_subjects
 
 
 def answer_lights(preset: Preset) -> tuple[PointLights, np.ndarray]:
@@ -251,8 +256,8 @@ def expected_work(preset: Preset, datasets: tuple[str, ...]) -> int:
         if hasattr(module, "expected_renders"):
             total += module.expected_renders(preset)
         else:
-            total += (size.train_subjects + size.test_subjects) * size.cameras * size.frames
-        total += size.test_subjects * size.cameras  # answers
+            total += size.subjects * size.cameras * size.frames
+        total += size.held_out_subjects * size.cameras  # answers
     return total
 
 
@@ -271,7 +276,7 @@ def generate_dataset(out, preset, dataset, seed, template, lights, envmaps, prog
     folder = out / "answers" / dataset
     for subject in subjects:
         write_subject_answers(folder / "subjects" / subject.name, template, subject)
-        if splits[subject.name] == "test":
+        if splits[subject.name] != "train":
             write_relighting_answers(folder, preset, template, subject, truth, lights, envmaps, progress)
     truth.save(folder / "truth.json")
     return dataset, dict(sorted(splits.items()))
@@ -393,7 +398,8 @@ def generate_world(
         all_splits = dict(run_jobs(jobs, workers, bar))
         (answers / "splits.json").write_text(json.dumps(all_splits, indent=1, sort_keys=True))
         # The published evaluation protocol (as real benchmarks publish their held-out subjects):
-        # which subjects are held out, and nothing about them. Ingest may read it (`--splits`).
+        # which subjects train, which select models (val) and which are held out for the test, and
+        # nothing about them. Ingest reads it (`--splits`) and writes each row's split from it.
         for dataset, splits in all_splits.items():
             protocol = out / "splits" / f"{NATIVE_DIRS[dataset]}.json"
             protocol.parent.mkdir(parents=True, exist_ok=True)

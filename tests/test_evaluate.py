@@ -240,9 +240,20 @@ def test_tables_and_report(evaluated):
     assert (evaluated["root"] / "bench" / "evaluation.json").read_text() == (
         out / "evaluation.json"
     ).read_text()
-    assert len(saved["goals"]) == 4
+    assert len(saved["goals"]) == 8
+    # One held-out subject per dataset: a smoke run, whose comparisons have no interval and no win.
+    assert saved["run_kind"] == "smoke run" and saved["held_out_subjects"] == {"d1": 1, "d2": 1}
+    assert saved["protocol"]["split"] == "test" and len(saved["protocol_sha256"]) == 64
+    comparison = saved["table1"]["comparisons"]["two_stage vs single_stage"]["psnr"]
+    assert comparison["subjects"] == 1 and comparison["low"] is None and comparison["win"] is False
+    assert {"psnr_srgb", "ssim_srgb", "rmse_srgb"} <= set(saved["table1"]["mean"]["two_stage"])
     report = (out / "report.md").read_text()
-    assert "synthetic world" in report and "paper's level" in report and "LPIPS" in report
+    assert "synthetic world" in report and "different data, not comparable" in report
+    assert (
+        "| 30.06 | 0.87 | 0.0655 |" in report
+        and "smoke run" in report.lower()
+        and saved["lpips"].startswith("skipped")
+    )
     for grid in [g for names in saved["grids"].values() for g in names]:
         image = cv2.imread(str(out / grid))
         assert image is not None and image.shape[0] >= 128

@@ -41,10 +41,10 @@ from relightanyone.format.schema import (
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "format.md"
 
 
-def _v1(table: str, fields: list[pa.Field]) -> pa.Schema:
+def _v2(table: str, fields: list[pa.Field]) -> pa.Schema:
     return pa.schema(fields).with_metadata(
         {
-            b"schema_version": b"1",
+            b"schema_version": b"2",
             b"colour_space": b"scene-linear rgb",
             b"camera_convention": b"opencv, w2c row-major, metres",
             b"table": table.encode(),
@@ -52,10 +52,10 @@ def _v1(table: str, fields: list[pa.Field]) -> pa.Schema:
     )
 
 
-# Format version 1 as written on disk, spelled out field by field: the schemas derived from the column
+# Format version 2 as written on disk, spelled out field by field: the schemas derived from the column
 # declarations must stay identical to it, so existing datasets read and shards stay byte-identical.
-FORMAT_V1 = {
-    "images": _v1(
+FORMAT_V2 = {
+    "images": _v2(
         "images",
         [
             pa.field("key", pa.string(), nullable=False),
@@ -72,13 +72,15 @@ FORMAT_V1 = {
             pa.field("image", pa.binary(), nullable=False),
             pa.field("image_encoding", pa.string(), nullable=False),
             pa.field("mask", pa.binary(), nullable=False),
+            pa.field("valid", pa.binary(), nullable=False),
             pa.field("crop", pa.list_(pa.int32(), 4), nullable=False),
-            pa.field("colour_matrix", pa.list_(pa.float64(), 9), nullable=False),
+            pa.field("colour_matrix", pa.list_(pa.float64(), 12), nullable=False),
             pa.field("source", pa.string(), nullable=False),
             pa.field("source_sha256", pa.string(), nullable=False),
+            pa.field("checksum", pa.uint64(), nullable=False),
         ],
     ),
-    "meshes": _v1(
+    "meshes": _v2(
         "meshes",
         [
             pa.field("key", pa.string(), nullable=False),
@@ -88,7 +90,7 @@ FORMAT_V1 = {
             pa.field("vertices", pa.list_(pa.float32()), nullable=False),
         ],
     ),
-    "lights": _v1(
+    "lights": _v2(
         "lights",
         [
             pa.field("index", pa.int32(), nullable=False),
@@ -99,7 +101,7 @@ FORMAT_V1 = {
             pa.field("full_on_intensity_rgb", pa.list_(pa.float64(), 3), nullable=True),
         ],
     ),
-    "index": _v1(
+    "index": _v2(
         "index",
         [
             pa.field("key", pa.string(), nullable=False),
@@ -119,9 +121,9 @@ FORMAT_V1 = {
     "table, schema",
     [("images", IMAGE_SCHEMA), ("meshes", MESH_SCHEMA), ("lights", LIGHT_SCHEMA), ("index", INDEX_SCHEMA)],
 )
-def test_derived_schemas_are_format_version_1_to_the_byte(table, schema):
-    assert schema.equals(FORMAT_V1[table], check_metadata=True)
-    assert schema.serialize().to_pybytes() == FORMAT_V1[table].serialize().to_pybytes()
+def test_derived_schemas_are_format_version_2_to_the_byte(table, schema):
+    assert schema.equals(FORMAT_V2[table], check_metadata=True)
+    assert schema.serialize().to_pybytes() == FORMAT_V2[table].serialize().to_pybytes()
 
 
 @pytest.mark.parametrize("table", TABLES, ids=lambda t: t.name)

@@ -104,7 +104,7 @@ def test_shards_open_with_plain_pyarrow_and_hugging_face(tmp_path):
     shard = dataset_dir / "images-00000.arrow"
     table = pa.ipc.open_stream(pa.memory_map(str(shard))).read_all()
     assert table.schema.equals(IMAGE_SCHEMA, check_metadata=True) and table.num_rows == 12
-    assert table.schema.metadata[b"schema_version"] == b"1"
+    assert table.schema.metadata[b"schema_version"] == b"2"
     hf = datasets.Dataset.from_file(str(shard))
     assert hf.num_rows == 12 and hf[3]["key"] == table.column("key")[3].as_py()
     first = hf[0]

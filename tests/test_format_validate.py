@@ -15,7 +15,7 @@ from relightanyone.format.cli import inspect_command, validate_command
 from relightanyone.format.examples import write_example_dataset as write_demo
 from relightanyone.format.preview import render_contact_sheet
 from relightanyone.format.reader import NormalizedDataset
-from relightanyone.format.schema import IMAGE_SCHEMA
+from relightanyone.format.schema import IMAGE_SCHEMA, row_checksum
 from relightanyone.format.validate import validate_path
 from relightanyone.hashing import sha256_file
 
@@ -73,15 +73,20 @@ def test_unlisted_shard_and_unsupported_version(damaged):
     shutil.copy(damaged / "images-00000.arrow", damaged / "images-00009.arrow")
     assert any("images-00009.arrow: shard is not listed" in m for m in _messages(damaged))
     (damaged / "images-00009.arrow").unlink()
-    (damaged / "manifest.json").write_text(json.dumps({"format_version": 2}))
-    assert any("format_version 2 is not supported" in m for m in _messages(damaged))
+    (damaged / "manifest.json").write_text(json.dumps({"format_version": 3}))
+    assert any("format version 3 is newer than this release reads" in m for m in _messages(damaged))
+    (damaged / "manifest.json").write_text(json.dumps({"format_version": 1}))
+    (message,) = _messages(damaged)
+    assert "format version 1 was written by an earlier release" in message and "re-ingest" in message
 
 
 def _rewrite_shard(dataset_dir, name, mutate):
     """Rewrite shard ``name`` with ``mutate(rows)`` applied and re-list it in the manifest, as a writer with
-    a bug would have done (the shard's hash is then right, its content wrong)."""
+    a bug would have done (the shard's hash and the rows' checksums are then right, their content wrong)."""
     rows = pa.ipc.open_stream(pa.memory_map(str(dataset_dir / name))).read_all().to_pylist()
     mutate(rows)
+    for row in rows:
+        row["checksum"] = row_checksum(row)
     writer = StreamFileWriter(dataset_dir / name, IMAGE_SCHEMA)
     for row in rows:
         writer.write(pa.RecordBatch.from_pylist([row], schema=IMAGE_SCHEMA))

@@ -23,7 +23,7 @@ MICRO = reduced_preset(
     texture_size=8,
     answer_lights=2,
     d1=DatasetSize(train_subjects=2, test_subjects=0, cameras=2, image_size=(16, 24), lights=4),
-    d2=DatasetSize(train_subjects=2, test_subjects=0, cameras=2, image_size=(64, 96), frames=2, lights=4),
+    d2=DatasetSize(train_subjects=2, test_subjects=0, cameras=2, image_size=(63, 96), frames=2, lights=4),
 )
 
 
@@ -248,7 +248,7 @@ def test_d1_frames_of_another_aspect_ratio_refuse_the_camera(d1):
     subject = next(s for s in plan.subjects if s.subject == "001")
     assert "Cam02" not in {v.camera.name for v in subject.views}
     (refusal,) = [r for r in subject.refusals if r.item == "001/Cam02"]
-    assert "other aspect ratio" in refusal.reason and "16x16" in refusal.reason
+    assert "no downscale" in refusal.reason and "16x16" in refusal.reason
 
 
 def test_d2_missing_frame_list_refuses_that_capture(d2):

@@ -86,13 +86,17 @@ def test_ava_subject_names_from_both_folder_conventions():
 
 def test_ava_downsample_factor():
     K = np.array([[[10000.0, 0, 1413.0], [0, 10000.0, 1783.0], [0, 0, 1]]])
-    assert downsample_factor(K, (667, 1024), (2668, 4096)) == 4
-    assert downsample_factor(K, (1334, 2048), (2668, 4096)) == 2
-    # Another sensor: the principal point (near the sensor centre) gives the factor.
+    assert downsample_factor(K, (667, 1024), (2668, 4096)).factor == 4
+    assert downsample_factor(K, (1334, 2048), (2668, 4096)).factor == 2
+    assert downsample_factor(K, (167, 256), (2668, 4096)).factor == 16  # 2668 / 16 = 166.75, rounded up
+    assert downsample_factor(K, (166, 256), (2668, 4096)).factor == 16  # ... or down
+    # A calibration made for a smaller sensor: its principal points say so, and the message names the size.
     K_small = np.array([[[800.0, 0, (104 * 4 - 1) / 2 + 3], [0, 800.0, (160 * 4 - 1) / 2 - 2], [0, 0, 1]]])
-    assert downsample_factor(K_small, (104, 160), (2668, 4096)) == 4
-    with pytest.raises(ValueError, match="no integer downscale"):
-        downsample_factor(K_small, (150, 160), (2668, 4096))
+    with pytest.raises(ValueError, match="sensor of about 422x636"):
+        downsample_factor(K_small, (104, 160), (2668, 4096))
+    assert downsample_factor(K_small, (104, 160), (416, 640)).factor == 4
+    with pytest.raises(ValueError, match="no downscale"):
+        downsample_factor(K_small, (150, 160), (416, 640))
 
 
 def test_ava_frame_selection():

@@ -8,6 +8,7 @@ its recorded colour undone with ``truth.colour_response``, sampled where the tru
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import av
@@ -104,9 +105,38 @@ def test_d4_ingested_pixels_match_true_radiance(world, tmp_path):
         errors.append(np.median(np.abs(got - true).sum(axis=1) / true.sum(axis=1)))
         assert geometry_error_px(world, "d4", truth, row) < 0.5, key
         np.testing.assert_allclose(
-            row.colour_matrix, np.linalg.inv(truth.colour_response[row.camera]), atol=1e-9
+            row.colour_matrix[:, :3], np.linalg.inv(truth.colour_response[row.camera]), atol=1e-9
         )
+        assert not row.colour_matrix[:, 3].any()  # a 3×3 calibration: no offset
     assert max(errors) < 0.01, errors  # video rounding and resampling only: the file CCM is exact
+
+
+def test_d4_per_camera_3x4_colour_matrices_are_recorded_as_applied(world, tmp_path):
+    # NeRSemble v2 ships one 3×4 CCM per camera (an offset column added after the matrix, in linear light).
+    plan = nersemble.plan(world / "nersemble", AdapterOptions(frames=(0,)))
+    plain = NormalizedDataset(ingest(world, plan, "d4", tmp_path / "plain").path)
+    src = shutil.copytree(world / "nersemble", tmp_path / "nersemble")
+    offsets = {}
+    for colour_file in src.glob(f"*/{nersemble.V2_COLOUR}"):
+        ccms = json.loads(colour_file.read_text())
+        for k, serial in enumerate(sorted(ccms)):
+            offsets[serial] = np.array([0.01, 0.02, 0.03]) * (k + 1)
+            ccms[serial] = np.hstack([np.asarray(ccms[serial])[:, :3], offsets[serial][:, None]]).tolist()
+        colour_file.write_text(json.dumps(ccms))
+    plan = nersemble.plan(src, AdapterOptions(frames=(0,)))
+    affine = NormalizedDataset(ingest(world, plan, "d4", tmp_path / "affine").path)
+    assert affine.keys == plain.keys and len(affine.keys) == 4
+    for key in affine.keys:
+        row, image, _ = affine.decoded(key)
+        plain_row, plain_image, _ = plain.decoded(key)
+        np.testing.assert_array_equal(row.colour_matrix[:, :3], plain_row.colour_matrix[:, :3])
+        np.testing.assert_array_equal(row.colour_matrix[:, 3], offsets[row.camera])
+        # The recorded matrix is the one applied: the stored pixels moved by exactly its offset column
+        # (where the source fills the pixel and the 3×3 result is not clipped at 0), up to float16.
+        lit = row.valid_pixels() & (plain_image > 0.05).all(axis=2)
+        assert lit.sum() > 100, key
+        shift = image[lit] - plain_image[lit]
+        np.testing.assert_allclose(shift, np.broadcast_to(offsets[row.camera], shift.shape), atol=2e-3)
 
 
 def test_d3_ingested_pixels_match_true_radiance_up_to_chart_exposure(world, tmp_path):
@@ -161,7 +191,16 @@ def write_calibrated_v1(world, out):
         K = np.array(params["intrinsics"])
         K[:2, :2] *= 2.0
         K[:2, 2] = (K[:2, 2] + 0.5) * 2.0 - 0.5
-        (target / "camera_params.json").write_text(json.dumps({**params, "intrinsics": K.tolist()}))
+        (target / "camera_params.json").write_text(
+            json.dumps(
+                {
+                    **params,
+                    "intrinsics": K.tolist(),
+                    "width": 2 * params["width"],
+                    "height": 2 * params["height"],
+                }
+            )
+        )
         ccms = read_nersemble_colour_calibration(participant / "calibration/color_calibration.json")
         for video in sorted((participant / "sequences/EXP-1-head/images").glob("cam_*.mp4")):
             serial = video.stem[len("cam_") :]

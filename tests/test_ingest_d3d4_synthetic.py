@@ -299,7 +299,16 @@ def write_v1(v2_root, out):
         K[:2, :2] *= 2.0  # the calibration is for frames twice the stored PNGs (images-2x)
         K[:2, 2] = (K[:2, 2] + 0.5) * 2.0 - 0.5
         target.mkdir(parents=True)
-        (target / "camera_params.json").write_text(json.dumps({**params, "intrinsics": K.tolist()}))
+        (target / "camera_params.json").write_text(
+            json.dumps(
+                {
+                    **params,
+                    "intrinsics": K.tolist(),
+                    "width": 2 * params["width"],
+                    "height": 2 * params["height"],
+                }
+            )
+        )
         for video in sorted((participant / "sequences/EXP-1-head/images").glob("cam_*.mp4")):
             serial = video.stem[len("cam_") :]
             with av.open(str(video)) as container:

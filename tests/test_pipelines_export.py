@@ -34,6 +34,8 @@ def test_export_round_trip_images_masks_and_cameras(example, tmp_path):
         exported = read_exr(out / entry["image"])
         assert exported.dtype == np.float32 and np.array_equal(exported, image)
         assert np.array_equal(decode_mask((out / entry["mask"]).read_bytes()), mask)
+        assert entry["valid"] == f"{row.subject}/{row.frame:06d}/{row.camera}/{row.pattern}.valid.png"
+        assert np.array_equal(decode_mask((out / entry["valid"]).read_bytes()) == 1.0, row.valid_pixels())
         np.testing.assert_array_equal(np.array(entry["K"]), row.K)
         np.testing.assert_array_equal(np.array(entry["w2c"]), row.w2c)
         assert (entry["width"], entry["height"]) == (row.width, row.height) == exported.shape[1::-1]

@@ -20,7 +20,7 @@ MICRO = reduced_preset(
     texture_size=8,
     answer_lights=2,
     d1=DatasetSize(train_subjects=2, test_subjects=1, cameras=2, image_size=(24, 32), lights=4),
-    d2=DatasetSize(train_subjects=2, test_subjects=0, cameras=2, image_size=(48, 64), lights=4),
+    d2=DatasetSize(train_subjects=2, test_subjects=0, cameras=2, image_size=(42, 64), lights=4),
     d3=DatasetSize(train_subjects=2, test_subjects=0, cameras=8, image_size=(80, 60), lights=4),
     d4=DatasetSize(train_subjects=2, test_subjects=0, cameras=4, image_size=(48, 64), lights=8),
 )

@@ -155,7 +155,17 @@ def test_held_out_cameras_are_spread_and_never_all():
     aside = held_out_cameras(cameras, 2)
     assert len(aside) == 2 and aside <= set(cameras)
     assert held_out_cameras(["a"], 3) == set()
-    assert len(held_out_cameras(["a", "b"], 5)) == 1
+    assert held_out_cameras(["a", "b", "c"], 5) == set()
+
+
+@pytest.mark.parametrize("cameras", [4, 8, 12, 16, 40, 80])
+def test_at_least_three_quarters_of_a_subjects_cameras_train(cameras):
+    """The paper preset holds out 8 cameras per subject; an 8-camera rig still trains from 6 of them."""
+    names = [f"cam{i:02d}" for i in range(cameras)]
+    for requested in (1, 2, 4, 8, 100):
+        aside = held_out_cameras(names, requested)
+        assert cameras - len(aside) >= 0.75 * cameras
+        assert len(aside) == min(requested, cameras // 4)
 
 
 def test_colour_cast_error_is_zero_for_the_true_cast_and_gain_free():

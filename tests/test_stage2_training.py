@@ -250,3 +250,29 @@ def test_cli_trains_stage2_and_explains_bad_input(olat_world, tmp_path):
         ["train", "stage2", "--data", str(other), "--stage1", str(run), "--out", str(tmp_path / "z")],
     )
     assert unknown.exit_code != 0 and "not trained on dataset 'other'" in unknown.output
+
+
+@pytest.mark.parametrize("single_stage", [False, True], ids=["stage2", "single-stage"])
+def test_accumulated_micro_batches_give_the_batch_gradient(olat_world, tmp_path, single_stage):
+    dataset, run = olat_world
+    config = Stage2Config(
+        dataset,
+        tmp_path / "s2",
+        tiny_stage2_preset(batch_size=4),
+        stage1_run=None if single_stage else run,
+        single_stage=single_stage,
+        stage1_preset=tiny_stage1_preset(crop_size=SIZE) if single_stage else None,
+        progress=False,
+    )
+    trainer = Stage2Trainer(config)
+    batch = trainer.batch(1)
+    gradients = {}
+    for parts in (1, 3):
+        trainer.config.accumulation = parts
+        trainer.optimizer.zero_grad(set_to_none=True)
+        terms = trainer.accumulate(batch, 1)
+        gradients[parts] = [p.grad.clone() for p in trainer.trainable.parameters() if p.grad is not None]
+        assert set(terms) >= {"total", "l1", "ssim"}
+    assert len(gradients[1]) == len(gradients[3]) > 0
+    for whole, accumulated in zip(gradients[1], gradients[3], strict=True):
+        torch.testing.assert_close(accumulated, whole, rtol=1e-4, atol=1e-6)

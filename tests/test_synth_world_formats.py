@@ -125,9 +125,8 @@ def test_d2_calibration_has_the_real_schema(world, real_fixtures):
         # Millimetres, like the real rig: the camera centre -R^T t lies ~1.2 m (1200 units) from the head.
         centre = -T[:3, :3] @ T[3, :3]
         assert 1000 < np.linalg.norm(centre - truth.world_from_canonical[:3, 3]) < 1400
-        # K is for a sensor 4x the written images, as the real 2668x4096 calibration for 667x1024 images.
-        width, height = micro_preset().d2.image_size
-        assert 3.5 * width < 2 * K[2, 0] < 4.5 * width and 3.5 * height < 2 * K[2, 1] < 4.5 * height
+        # K is for the real 2668x4096 sensor, of which the written images are a downscale.
+        assert 2668 * 0.4 < 2 * K[2, 0] < 2668 * 1.6 and 4096 * 0.4 < 2 * K[2, 1] < 4096 * 1.6
 
 
 def test_d2_vertex_projects_where_the_renderer_drew_it(world):
@@ -145,9 +144,10 @@ def test_d2_vertex_projects_where_the_renderer_drew_it(world):
     K_sensor = np.array(entry["K"]).T
     Rt = np.array(entry["T"])[:4, :3].T  # 3x4 world(mm) -> camera
     dist = np.array(entry["distortion"] + [0.0])
-    s = 4.0
+    width, height = micro_preset().d2.image_size
+    s = np.array([2668 / width, 4096 / height])  # the release resizes the full sensor to the stored size
     K_image = K_sensor.copy()
-    K_image[:2, :2] /= s
+    K_image[[0, 1], [0, 1]] /= s
     K_image[:2, 2] = (K_image[:2, 2] + 0.5) / s - 0.5
     vertex = nose_tip()
     for frame_index, frame_id in enumerate(frame_ids):

@@ -139,7 +139,7 @@ def test_training_subjects_are_rendered_like_the_held_out_answers(nano_world):
     from relightanyone.synth.world import render_subject_olat
 
     answers = WorldAnswers(nano_world)
-    held_out = answers.test_subjects("d2")[0]
+    held_out = answers.subjects_in("d2", "test")[0]
     camera = sorted(answers.cameras("d2"))[0]
     rendered = render_subject_olat(nano_world, "d2", held_out, [camera], preset=nano_preset())[camera]
     for light in range(len(rendered)):
@@ -152,3 +152,17 @@ def test_training_subjects_are_rendered_like_the_held_out_answers(nano_world):
         render_subject_olat(nano_world, "d2", training, [camera])
     with pytest.raises(ValueError, match="no subject"):
         render_subject_olat(nano_world, "d2", "nobody", [camera], preset=nano_preset())
+
+
+def test_splits_are_published_with_validation_subjects_and_answers(tmp_path):
+    """Train, then validation, then test subjects; the protocol file and the answers list all three, and
+    validation subjects get answers like test subjects (model selection compares against them)."""
+    preset = nano_preset()
+    preset = replace(preset, d3=replace(preset.d3, train_subjects=1, val_subjects=1, test_subjects=1))
+    generate_world(tmp_path / "w", preset, seed=3, datasets=("d3",), progress=False)
+    published = json.loads((tmp_path / "w" / "splits" / "stereo_rig.json").read_text())
+    assert sorted(published.values()) == ["test", "train", "val"]
+    assert json.loads((tmp_path / "w" / "answers" / "splits.json").read_text()) == {"d3": published}
+    for subject, split in published.items():
+        answered = (tmp_path / "w" / "answers" / "d3" / "olat" / subject).is_dir()
+        assert answered == (split != "train"), subject

@@ -351,7 +351,8 @@ class Fitter:
         target, mask = self.views.images[view_index], self.views.masks[view_index]
         if background is not None:
             render, target = composite_over_background(render, alpha, target, mask, background)
-            mask = torch.ones_like(mask)
+            # The whole image but the padding past the source (on the device of the images).
+            mask = self.views.valid[view_index].to(target.device)
         terms = {
             "l1": masked_l1(render, target, mask).mean(),
             "ssim": ssim_loss(render, target, mask).mean(),

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from relightanyone.errors import InputError
-from relightanyone.format.schema import make_mesh_key
+from relightanyone.format.schema import PADDING_WEIGHT_TOLERANCE, make_mesh_key
 from relightanyone.format.torch_dataset import LEARNED, NormalizedTorchDataset, image_hwc
 from relightanyone.render.camera import resize_intrinsics
 
@@ -22,7 +22,8 @@ class FitViews:
     """The input of a fit: V views of one subject and frame, one image size.
 
     images (V, 3, H, W) linear RGB; masks (V, 1, H, W); K (V, 3, 3); w2c (V, 4, 4) float32;
-    tracked_vertices (Vtx, 3) or None; keys and cameras name the rows.
+    tracked_vertices (Vtx, 3) or None; keys and cameras name the rows; valid (V, 1, H, W) 0/1, 0 on the
+    padding past the source image (None: every pixel).
     """
 
     images: torch.Tensor
@@ -36,6 +37,11 @@ class FitViews:
     pattern: str
     keys: list[str] = field(default_factory=list)
     cameras: list[str] = field(default_factory=list)
+    valid: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.valid is None:
+            self.valid = torch.ones_like(self.masks)
 
     def __len__(self) -> int:
         return self.images.shape[0]
@@ -98,11 +104,12 @@ def load_fit_views(
         raise InputError(
             f"{dataset.path}: the chosen views have several image sizes {sorted(sizes)}; pick cameras of one size"
         )
-    images, masks = zip(*(scaled_image_and_mask(item, image_scale) for item in items), strict=True)
+    images, masks, valid = zip(*(scaled_image_and_mask(item, image_scale) for item in items), strict=True)
     tracked = dataset.meshes().get(make_mesh_key(subject, frame))
     return FitViews(
         images=torch.stack(images),
         masks=torch.stack(masks),
+        valid=torch.stack(valid),
         K=torch.tensor(
             np.stack([resize_intrinsics(item["K"].numpy(), image_scale, image_scale) for item in items]),
             dtype=torch.float32,
@@ -118,15 +125,19 @@ def load_fit_views(
     )
 
 
-def scaled_image_and_mask(item: dict, scale: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """(image (3, h, w), mask (1, h, w)) of a dataset item resized by ``scale`` (OpenCV area filter; the
-    item's own tensors at scale 1)."""
+def scaled_image_and_mask(item: dict, scale: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(image (3, h, w), mask (1, h, w), valid (1, h, w)) of a dataset item resized by ``scale`` (OpenCV
+    area filter; the item's own tensors at scale 1). A resized pixel is valid when every pixel it averages
+    is."""
     if scale == 1.0:
-        return item["image"], item["mask"]
+        return item["image"], item["mask"], item["valid"]
     size = (max(1, round(item["width"] * scale)), max(1, round(item["height"] * scale)))
     image = cv2.resize(image_hwc(item), size, interpolation=cv2.INTER_AREA)
     mask = cv2.resize(item["mask"][0].numpy(), size, interpolation=cv2.INTER_AREA)
+    coverage = cv2.resize(item["valid"][0].numpy(), size, interpolation=cv2.INTER_AREA)
+    valid = (coverage >= 1.0 - PADDING_WEIGHT_TOLERANCE).astype(np.float32)
     return (
         torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32)),
-        torch.from_numpy(np.asarray(mask, dtype=np.float32)[None]),
+        torch.from_numpy(np.asarray(mask, dtype=np.float32)[None] * valid),
+        torch.from_numpy(valid[None]),
     )

@@ -174,7 +174,7 @@ class Stage1Data:
         """Stack views into a batch. With ``crop_size``, the crop of view ``i`` is drawn from the generator of
         global sample ``first_sample + i`` at ``iteration``.
 
-        Returns image (B, 3, H, W), mask (B, 1, H, W), K (B, 3, 3) float32, w2c (B, 4, 4) float32,
+        Returns image (B, 3, H, W), mask and valid (B, 1, H, W), K (B, 3, 3) float32, w2c (B, 4, 4) float32,
         tracked (B, V, 3) (zeros where missing), has_mesh (B,) float, subject_index and dataset_index (B,) int64.
         """
         items = []
@@ -193,6 +193,7 @@ class Stage1Data:
         return {
             "image": batch["image"],
             "mask": batch["mask"],
+            "valid": batch["valid"],
             "K": batch["K"].to(torch.float32),
             "w2c": batch["w2c"].to(torch.float32),
             "tracked": torch.from_numpy(

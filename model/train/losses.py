@@ -2,9 +2,9 @@
 
 L = 10·L1 + 0.2·(1 − SSIM) + 0.4·vertex L2 + 0.01·scale bound + λ_t·‖δt‖², λ_t annealed 1 → 0.001.
 Image terms count masked pixels only; training composites render and target over a random background
-first (:func:`composite_over_background`), so the mask covers the whole crop. Vertex L2 is in mm² (RGCA's
-unit, for which its 0.4 weight was chosen); δt and scales are in texel spacings (see
-:mod:`relightanyone.model.networks.gaussians`).
+first (:func:`composite_over_background`), so the weight covers the crop's valid pixels (all but the
+padding past the source image). Vertex L2 is in mm² (RGCA's unit, for which its 0.4 weight was chosen);
+δt and scales are in texel spacings (see :mod:`relightanyone.model.networks.gaussians`).
 """
 
 from __future__ import annotations

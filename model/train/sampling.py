@@ -104,21 +104,28 @@ def crop_array(array: np.ndarray, box: CropBox) -> np.ndarray:
 
 def random_crop(item: dict[str, Any], size: int, rng: np.random.Generator) -> dict[str, Any]:
     """A dataset item (:class:`~relightanyone.format.torch_dataset.NormalizedTorchDataset`) cropped to the
-    window :func:`choose_crop` draws from its mask: image (3, size, size), mask (1, size, size) and K
-    (float64) of the crop; the other fields as they are."""
+    window :func:`choose_crop` draws from its mask: image (3, size, size), mask and valid (1, size, size)
+    and K (float64) of the crop; the other fields as they are. A window past the image's edge is padding:
+    invalid."""
     box = choose_crop(item["mask"][0].numpy(), size, rng)
-    return {
-        **item,
-        "image": torch.from_numpy(crop_array(item["image"].numpy(), box)),
-        "mask": torch.from_numpy(crop_array(item["mask"].numpy(), box)),
-        "K": torch.from_numpy(crop_intrinsics(item["K"].numpy(), box.x0, box.y0)),
+    cropped = {
+        name: torch.from_numpy(crop_array(item[name].numpy(), box))
+        for name in ("image", "mask", "valid")
+        if name in item
     }
+    return {**item, **cropped, "K": torch.from_numpy(crop_intrinsics(item["K"].numpy(), box.x0, box.y0))}
+
+
+# At least this share of each subject's cameras trains, whatever the preset asks to hold out: a preset
+# sized for a 40-camera light stage must not leave an 8-camera rig's subject with one training view.
+MIN_TRAINING_CAMERA_SHARE = 0.75
 
 
 def held_out_cameras(cameras: list[str], count: int) -> set[str]:
-    """``count`` cameras spread evenly over the sorted camera names, never all of them."""
+    """``count`` cameras spread evenly over the sorted camera names, capped so that at least
+    :data:`MIN_TRAINING_CAMERA_SHARE` of them train (none held out below four cameras)."""
     ordered = sorted(set(cameras))
-    count = min(count, len(ordered) - 1)
+    count = min(count, int(len(ordered) * (1 - MIN_TRAINING_CAMERA_SHARE) + 1e-9))
     if count <= 0:
         return set()
     step = len(ordered) / count

@@ -60,7 +60,13 @@ from relightanyone.model.train.losses import (
     stage1_loss,
 )
 from relightanyone.model.train.memory import StepShape, estimate_stage1, format_memory
-from relightanyone.model.train.run_files import CHECKPOINT_NAME, METRICS_NAME, RUN_INFO_NAME
+from relightanyone.model.train.run_files import (
+    CHECKPOINT_NAME,
+    METRICS_NAME,
+    RUN_INFO_NAME,
+    TRAINED_VIEWS_KEY,
+    trained_views,
+)
 from relightanyone.model.train.sampling import background_colours, balanced_batch
 from relightanyone.progress import progress_bar
 
@@ -230,7 +236,7 @@ def _train_stage1(config: Stage1Config, group: ProcessGroup) -> dict:
         loss, terms = stage1_loss(
             render_bg,
             target_bg,
-            torch.ones_like(batch["mask"]),
+            batch["valid"],  # the whole crop but the padding past the source image, which shows no head
             vertices,
             batch["tracked"],
             gaussians,
@@ -325,6 +331,11 @@ def _run_info(config: Stage1Config, data: Stage1Data, group: ProcessGroup) -> di
             {"name": n, "path": str(d.resolve())} for n, d in zip(data.names, data.dirs, strict=True)
         ],
         "subjects": data.subjects,
+        TRAINED_VIEWS_KEY: trained_views(
+            (f"{data.names[v.dataset_index]}/{v.subject}", v.camera)
+            for views in data.train_views
+            for v in views
+        ),
         "uncalibrated": list(config.uncalibrated),
         "seed": config.seed,
         "processes": group.world_size,

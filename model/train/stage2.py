@@ -95,7 +95,13 @@ from relightanyone.model.train.losses import (
     weighted_sum,
 )
 from relightanyone.model.train.run import load_run
-from relightanyone.model.train.run_files import CHECKPOINT_NAME, METRICS_NAME, RUN_INFO_NAME
+from relightanyone.model.train.run_files import (
+    CHECKPOINT_NAME,
+    METRICS_NAME,
+    RUN_INFO_NAME,
+    TRAINED_VIEWS_KEY,
+    trained_views,
+)
 from relightanyone.model.train.sampling import (
     CROP_STREAM,
     background_colours,
@@ -133,6 +139,7 @@ class Stage2Config:
     precision: str = "fp32"  # fp32, or bf16 for the trained conv networks (networks.precision)
     checkpoint_maps: bool = False  # recompute the trained networks' map activations in the backward pass
     loader_workers: int | None = None  # batch loader processes (None: device.loader_workers' default)
+    accumulation: int = 1  # micro-batches per step: the batch's gradient, accumulated in parts
     extra_info: dict = field(default_factory=dict)
 
 
@@ -208,6 +215,11 @@ class OlatFrames:
         if not self.full_on and not self.olat:
             raise InputError(f"{self.path}: no 'full' or 'olat-KKK' training rows")
 
+    def trained_views(self) -> dict[str, list[str]]:
+        """{``<dataset>/<subject>``: cameras} of every training row (full-on and OLAT)."""
+        subjects, cameras = self.rows.column("subject"), self.rows.column("camera")
+        return trained_views((f"{self.name}/{s}", c) for s, c in zip(subjects, cameras, strict=True))
+
     def draw(self, batch_size: int, full_on_fraction: float, seed: int, iteration: int) -> list[OlatView]:
         """The views of one iteration: full-on with probability ``full_on_fraction``, else OLAT (stateless)."""
         rng = iteration_generator(seed, iteration, PATTERN_STREAM)
@@ -230,7 +242,7 @@ class OlatFrames:
     def load_batch(
         self, views: list[OlatView], crop_size: int, seed: int, iteration: int, first_sample: int = 0
     ) -> dict[str, torch.Tensor]:
-        """image (B, 3, c, c), mask (B, 1, c, c), K (B, 3, 3), w2c (B, 4, 4), light_positions and
+        """image (B, 3, c, c), mask and valid (B, 1, c, c), K (B, 3, 3), w2c (B, 4, 4), light_positions and
         light_intensities (B, Lmax, 3), tracked (B, V, 3), has_mesh (B,), subject_index (B,).
 
         ``views`` are the global batch's samples ``first_sample ..``; each sample's crop is drawn from its
@@ -255,6 +267,7 @@ class OlatFrames:
         return {
             "image": batch["image"],
             "mask": batch["mask"],
+            "valid": batch["valid"],
             "K": batch["K"].to(torch.float32),
             "w2c": batch["w2c"].to(torch.float32),
             "light_positions": light_positions,
@@ -415,7 +428,7 @@ class Stage2Trainer:
         )
 
     def loss(
-        self, batch: dict[str, torch.Tensor], iteration: int
+        self, batch: dict[str, torch.Tensor], iteration: int, first_sample: int = 0
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor | float], torch.Tensor]:
         """Total loss (mean over samples), its unweighted terms (batch means as detached 0-d tensors, read
         only when logged; plus the weights and ``total``), the render."""
@@ -438,12 +451,11 @@ class Stage2Trainer:
         )
         compared, image, mask = render, batch["image"], batch["mask"]
         if self.config.single_stage:  # its geometry trains: coverage counts, as in stage 1
-            first_sample = self.group.rank * self.preset.batch_size
             background = background_colours(self.config.seed, iteration, first_sample, render.shape[0])
             compared, image = composite_over_background(
                 render, alpha, image, mask, torch.from_numpy(background)
             )
-            mask = torch.ones_like(mask)
+            mask = batch["valid"]  # the whole crop but the padding past the source image
         normal_lambda = annealed_weight(
             iteration, weights.normal_start, weights.normal_end, self.preset.normal_anneal_iterations
         )
@@ -484,6 +496,25 @@ class Stage2Trainer:
         logged.update(batch_means(terms))
         logged["total"] = total.detach()
         return total, logged, render
+
+    def accumulate(self, batch: dict[str, torch.Tensor], iteration: int) -> dict[str, torch.Tensor | float]:
+        """Back-propagate the batch's loss in ``config.accumulation`` micro-batches (each loss weighted by its
+        share of the samples, so the summed gradient is the whole batch's); returns the batch's terms."""
+        size = batch["image"].shape[0]
+        first_sample = (
+            self.group.rank * self.preset.batch_size
+        )  # of this process's slice, in the global batch
+        parts = max(1, min(self.config.accumulation, size))
+        bounds = [round(size * k / parts) for k in range(parts + 1)]
+        terms: dict[str, torch.Tensor | float] = {}
+        for begin, end in zip(bounds[:-1], bounds[1:], strict=True):
+            share = (end - begin) / size
+            micro_batch = {k: v[begin:end] for k, v in batch.items()}
+            total, part_terms, _ = self.loss(micro_batch, iteration, first_sample + begin)
+            (total * share).backward()
+            for name, value in part_terms.items():
+                terms[name] = value if name.endswith("_lambda") else terms.get(name, 0.0) + value * share
+        return terms
 
     def resume_if_possible(self) -> None:
         path = Path(self.config.out) / CHECKPOINT_NAME
@@ -538,9 +569,8 @@ class Stage2Trainer:
         for iteration in range(self.start, self.preset.iterations):
             began = time.perf_counter()
             batch = {k: v.to(self.device, non_blocking=on_gpu) for k, v in next(batches).items()}
-            total, terms, _ = self.loss(batch, iteration)
             self.optimizer.zero_grad(set_to_none=True)
-            total.backward()
+            terms = self.accumulate(batch, iteration)
             if self.group.distributed:
                 average_gradients(self.trainable, self.group.world_size)
             self.optimizer.step()
@@ -596,6 +626,7 @@ class Stage2Trainer:
             "stage1_run": str(Path(self.config.stage1_run).resolve()) if self.config.stage1_run else None,
             "dataset": {"name": self.frames.name, "path": str(self.frames.path.resolve())},
             "subjects": self.frames.subjects,
+            TRAINED_VIEWS_KEY: self.frames.trained_views(),
             "head_centre": self.trainable.head_centre.tolist(),
             "lights": len(self.frames.rig),
             "frames": {"full_on": len(self.frames.full_on), "olat": len(self.frames.olat)},

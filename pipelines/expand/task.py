@@ -122,9 +122,11 @@ def _render_subject(writer, settings, task, on_images) -> dict:
                 settings.lightings_per_pass,
             )
             pixels = images.permute(0, 2, 3, 1).cpu().numpy()
-            # The images are in the model's colour space: the learned matrix after the source's own.
+            # The images are in the model's colour space: the learned matrix after the source's own
+            # (3×3 @ 3×4: the offset goes through the learned matrix too).
             colour_matrix = row.colour_matrix if learned is None else learned @ row.colour_matrix
             source_sha256 = sha256_bytes(row.image)
+            valid = row.valid_pixels()  # the source row's padding stays padding in every relit image
             for item, image in zip(lightings, pixels, strict=True):
                 part.add(
                     build_image_row(
@@ -145,6 +147,7 @@ def _render_subject(writer, settings, task, on_images) -> dict:
                         source_sha256=source_sha256,
                         crop=row.crop,
                         colour_matrix=colour_matrix,
+                        valid=valid,
                     )
                 )
             count += len(lightings)

@@ -178,3 +178,27 @@ def decode_mask(data: bytes) -> np.ndarray:
     if mask is None or mask.dtype != np.uint8 or mask.ndim != 2:
         raise CodecError("data is not an 8-bit single-channel PNG mask")
     return mask.astype(np.float32) / np.float32(255.0)
+
+
+def encode_valid(valid: np.ndarray) -> bytes:
+    """(H, W) bool valid-pixel map -> its bits, row-major, most significant bit first (``np.packbits``):
+    ``ceil(H · W / 8)`` bytes; the shard's zstd compresses the usual all-ones map to a few bytes."""
+    valid = np.asarray(valid)
+    if valid.ndim != 2:
+        raise CodecError(f"expected a (H, W) valid-pixel map, got shape {valid.shape}")
+    return np.packbits(valid.reshape(-1).astype(bool)).tobytes()
+
+
+def valid_bytes(height: int, width: int) -> int:
+    """Length of an encoded (height, width) valid-pixel map."""
+    return -(-int(height) * int(width) // 8)
+
+
+def decode_valid(data: bytes, height: int, width: int) -> np.ndarray:
+    """Bits of :func:`encode_valid` -> (H, W) bool."""
+    if len(data) != valid_bytes(height, width):
+        raise CodecError(
+            f"valid-pixel map holds {len(data)} bytes, a {width}x{height} image needs {valid_bytes(height, width)}"
+        )
+    bits = np.unpackbits(np.frombuffer(data, np.uint8), count=int(height) * int(width))
+    return bits.reshape(int(height), int(width)).view(bool)

@@ -4,7 +4,9 @@
 with the listed size (hashes are checked by ``validate``), reads the
 small ``index.arrow`` (key, subject, frame, camera, pattern, split, shard, byte offset of the row's record
 batch) and builds a key -> position dict. ``row(key)`` then memory-maps the shard (``pa.memory_map``) once
-and reads just that row's record batch at its offset: O(1) in the number of rows. Shards are Arrow IPC
+and reads just that row's record batch at its offset: O(1) in the number of rows. Every row read is checked
+against its checksum (``schema.row_checksum``), so corrupted bytes raise an ``InputError`` naming the
+shard file and the row instead of returning different pixels. Shards are Arrow IPC
 *stream* files, so ``pyarrow.ipc.open_stream`` and Hugging Face ``datasets.Dataset.from_file`` open them as
 they are.
 
@@ -22,7 +24,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from relightanyone.errors import RelightAnyoneError
+from relightanyone.errors import InputError, RelightAnyoneError
 from relightanyone.format.arrow_io import read_batch_at, read_table_file
 from relightanyone.format.codecs import decode_image, decode_mask
 from relightanyone.format.schema import (
@@ -41,6 +43,10 @@ from relightanyone.format.schema import (
 
 class IncompleteDatasetError(RelightAnyoneError, RuntimeError):
     """The folder is not a complete dataset (no manifest, or files it lists are missing)."""
+
+
+class CorruptRowError(InputError):
+    """A stored row cannot be read or does not match its checksum; the message names the shard and row."""
 
 
 def load_manifest(dataset_dir: Path) -> Manifest:
@@ -147,17 +153,34 @@ class NormalizedDataset:
         return self._maps[shard]
 
     def record_batch(self, key: str) -> pa.RecordBatch:
-        """The one-row record batch of ``key`` (zero-copy where the data is not compressed)."""
+        """The one-row record batch of ``key`` (zero-copy where the data is not compressed; not checked
+        against the row's checksum: :meth:`row` does that)."""
         position = self.position(key)
         shard, offset = int(self._shard_column[position]), int(self._offset_column[position])
-        return read_batch_at(self._map(shard), offset, IMAGE_SCHEMA)
+        try:
+            batch = read_batch_at(self._map(shard), offset, IMAGE_SCHEMA)
+            # Offsets and lengths checked before any value is touched: a flipped byte there must not
+            # send a read past a buffer (a few µs for one row).
+            batch.validate(full=True)
+            return batch
+        except (pa.ArrowException, OSError) as error:
+            raise CorruptRowError(
+                f"{self.shard_path(shard)}: row {key!r} at byte {offset} cannot be read ({error}); the shard "
+                f"is corrupted: run `relightanyone validate {self.path}`, then restore or re-ingest it"
+            ) from None
 
     def row(self, key: str) -> ImageRow:
-        """The image row of ``key`` (image and mask still encoded)."""
-        return ImageRow.from_arrow_dict(self.record_batch(key).to_pylist()[0])
+        """The image row of ``key`` (image and mask still encoded), checked against its checksum."""
+        values = self.record_batch(key).to_pylist()[0]
+        try:
+            return ImageRow.from_arrow_dict(values)
+        except SchemaError as error:
+            shard = self.shard_path(int(self._shard_column[self.position(key)]))
+            raise CorruptRowError(f"{shard}: {error}") from None
 
     def decoded(self, key: str) -> tuple[ImageRow, np.ndarray, np.ndarray]:
-        """``(row, image (H, W, 3) float32 linear, mask (H, W) float32 in [0, 1])``."""
+        """``(row, image (H, W, 3) float32 linear, mask (H, W) float32 in [0, 1])``; the row's valid
+        pixels are ``row.valid_pixels()``."""
         row = self.row(key)
         return row, decode_image(row.image, row.image_encoding), decode_mask(row.mask)
 

@@ -70,6 +70,7 @@ from relightanyone.format.arrow_io import (
     write_table_file,
 )
 from relightanyone.format.schema import (
+    FORMAT_VERSION,
     IMAGE_SCHEMA,
     INDEX_COLUMNS,
     INDEX_NAME,
@@ -298,17 +299,16 @@ class ShardWriter:
         (self.dataset_dir / MANIFEST_NAME).unlink(missing_ok=True)
         fsync_dir(self.dataset_dir)
         stamp = self.parts_dir / _CONFIG_STAMP
-        if self.parts_dir.exists() and (
-            not stamp.exists()
-            or json.loads(stamp.read_text())["config_fingerprint"] != self.info.config_fingerprint
-        ):
+        # Parts of another config, or of another format version (another row schema), are not reused.
+        expected = {"config_fingerprint": self.info.config_fingerprint, "format_version": FORMAT_VERSION}
+        if self.parts_dir.exists() and (not stamp.exists() or json.loads(stamp.read_text()) != expected):
             shutil.rmtree(self.parts_dir)
         self.parts_dir.mkdir(exist_ok=True)
         for tmp in [*self.dataset_dir.glob("*.tmp"), *self.parts_dir.glob("*.tmp")]:
             shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
         for stale in (_STAGED_LIGHTS, _STAGED_QUARANTINE):
             (self.parts_dir / stale).unlink(missing_ok=True)
-        atomic_write_bytes(stamp, json.dumps({"config_fingerprint": self.info.config_fingerprint}).encode())
+        atomic_write_bytes(stamp, json.dumps(expected).encode())
 
     def has_part(self, task: str) -> bool:
         """Whether ``task`` finished in this or an earlier (interrupted) run."""

@@ -4,10 +4,12 @@ Stage-1 and stage-2 training, the single-stage baseline, fitting and evaluation 
 through :class:`NormalizedTorchDataset`. Each item is a dict::
 
     image          (3, H, W) float32, scene-linear, the colour matrix applied (``rgb = M @ rgb``) when given
-    mask           (1, H, W) float32 in [0, 1]
+    mask           (1, H, W) float32 in [0, 1], zero wherever ``valid`` is
+    valid          (1, H, W) float32, 1 where the pixel comes from the source image, 0 where it reaches the
+                   zero padding past the source's edge: losses and metrics weigh pixels by it
     K              (3, 3) float64, pixels of the stored image
     w2c            (4, 4) float64, OpenCV world-to-camera
-    colour_matrix  (3, 3) float32, the matrix the dataset was already normalized with at ingest
+    colour_matrix  (3, 4) float32, the correction ingest already applied (``rgb = M[:, :3] @ src + M[:, 3]``)
     index          int, the item's position in this dataset
     key, dataset, subject, camera, pattern, split: str;  frame, width, height: int
 
@@ -110,9 +112,12 @@ class NormalizedTorchDataset(torch.utils.data.Dataset):
             )
         if self.colour_matrix is not None:
             image = image @ self.colour_matrix.T.astype(np.float32)
+        valid = row.valid_pixels()
         return {
             "image": torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32)),
-            "mask": torch.from_numpy(mask)[None],
+            # Masks exclude padding by the format's rule; applied again so no reader can count it.
+            "mask": torch.from_numpy(mask * valid)[None],
+            "valid": torch.from_numpy(valid.astype(np.float32))[None],
             "K": torch.from_numpy(row.K),
             "w2c": torch.from_numpy(row.w2c),
             "colour_matrix": torch.from_numpy(row.colour_matrix.astype(np.float32)),

@@ -1,11 +1,15 @@
 """Checking a normalized dataset, reporting every problem with its file and row.
 
 ``validate_path(DIR)`` accepts one dataset folder or a root holding several and returns a list of
-``Problem``; an empty list means the data is sound. Checks: manifest present and of format version 1;
-every listed file present, of the listed size (truncation) and sha256 (any changed byte); no shard listed
-twice; no unlisted shard or leftover temporary file; shard schema; keys unique across shards and equal to
-the index; names safe as file names; sane ``K`` and ``w2c``; images and masks decodable at the declared size; meshes, lights and
-quarantine readable, and the quarantine holding as many entries as the manifest's ``quarantined``.
+``Problem``; an empty list means the data is sound. Checks: manifest present and of the current format
+version; at least one image row; every listed file present, of the listed size (truncation) and sha256
+(any changed byte); no shard listed twice; no unlisted shard or leftover temporary file; shard schema; every row's values matching its
+checksum (a changed shard is still read, so the corrupted rows are named; past a row that cannot be
+decompressed, the rows are read at their offsets in the index); keys unique across shards and
+equal to the index; names safe as file names; sane ``K`` and ``w2c``; images and masks decodable at the
+declared size, and no mask pixel outside the row's valid pixels (on the zero padding past the source
+image's edge); meshes, lights and quarantine readable, and the quarantine holding as many entries as the
+manifest's ``quarantined``.
 """
 
 from __future__ import annotations
@@ -18,10 +22,12 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from relightanyone.format.arrow_io import read_table_file
-from relightanyone.format.codecs import CodecError, decode_image, decode_mask
+from relightanyone.format.arrow_io import read_batch_at, read_table_file
+from relightanyone.format.codecs import CodecError, decode_image, decode_mask, decode_valid
 from relightanyone.format.reader import IncompleteDatasetError, load_manifest
 from relightanyone.format.schema import (
+    CHECKSUM_COLUMN,
+    FORMAT_VERSION,
     IMAGE_SCHEMA,
     INDEX_NAME,
     LIGHT_SCHEMA,
@@ -33,6 +39,8 @@ from relightanyone.format.schema import (
     SchemaError,
     camera_problems,
     name_problem,
+    row_checksum,
+    row_label,
 )
 from relightanyone.format.shards import PARTS_DIR, dataset_dirs
 from relightanyone.hashing import sha256_file
@@ -77,7 +85,11 @@ def _open_stream(
         return None
     if not reader.schema.equals(schema, check_metadata=True):
         problems.append(
-            Problem(str(path), None, f"schema differs from format version 1 ({reader.schema.metadata})")
+            Problem(
+                str(path),
+                None,
+                f"schema differs from format version {FORMAT_VERSION} ({reader.schema.metadata})",
+            )
         )
         return None
     return reader
@@ -94,6 +106,9 @@ def _name_problems(values: dict) -> list[str]:
 
 
 def _check_image_row(path: Path, row_number: int, values: dict, decode: bool) -> list[Problem]:
+    if row_checksum(values) != values[CHECKSUM_COLUMN.name]:
+        message = "the row's values do not match its checksum (corrupted)"
+        return [Problem(str(path), row_number, f"{row_label(values)}: {message}")]
     found = _name_problems(values)
     found += camera_problems(values["K"], values["w2c"], values["width"], values["height"])
     problems = [Problem(str(path), row_number, f"{values['key']}: {p}") for p in found]
@@ -116,9 +131,38 @@ def _check_image_row(path: Path, row_number: int, values: dict, decode: bool) ->
             problems.append(
                 Problem(str(path), row_number, f"{values['key']}: mask is {mask.shape}, declared {size}")
             )
+        else:
+            outside = int(np.count_nonzero(mask[~decode_valid(values["valid"], *size)]))
+            if outside:
+                problems.append(
+                    Problem(
+                        str(path),
+                        row_number,
+                        f"{row_label(values)}: mask covers {outside} pixel(s) outside the source image "
+                        "(clear bits of `valid`: zero padding past the image's edge)",
+                    )
+                )
     except CodecError as error:
         problems.append(Problem(str(path), row_number, f"{values['key']}: mask does not decode ({error})"))
     return problems
+
+
+def _indexed_rows(index: pa.Table | None, shard_number: int) -> list[tuple[int, str]]:
+    """(byte offset, key) of the index's rows in shard ``shard_number``, in stream order; empty without
+    an index."""
+    if index is None:
+        return []
+    shards = index.column("shard").to_pylist()
+    offsets = index.column("batch_offset").to_pylist()
+    keys = index.column("key").to_pylist()
+    return sorted((o, k) for s, o, k in zip(shards, offsets, keys, strict=True) if s == shard_number)
+
+
+def _key_values(key: str) -> dict:
+    """The name fields of an image key ``<dataset>/<subject>/<frame:06d>/<camera>/<pattern>``."""
+    dataset, subject, frame, camera, _ = (key.split("/") + [""] * 5)[:5]
+    frame = int(frame) if frame.isdigit() else frame
+    return {"key": key, "dataset": dataset, "subject": subject, "camera": camera, "frame": frame}
 
 
 def _check_table(path: Path, schema: pa.Schema, problems: list[Problem]) -> pa.Table | None:
@@ -140,6 +184,14 @@ def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = Fa
     except (IncompleteDatasetError, SchemaError) as error:
         return [Problem(str(dataset_dir / MANIFEST_NAME), None, str(error))]
     problems: list[Problem] = []
+    if manifest.counts.get("images", 0) == 0:
+        problems.append(
+            Problem(
+                str(dataset_dir / MANIFEST_NAME),
+                None,
+                f"the dataset holds no image row ({manifest.quarantined} items quarantined, see {QUARANTINE_NAME})",
+            )
+        )
     listed = Counter(entry.file for entry in manifest.shards)
     for name, times in sorted(listed.items()):
         if times > 1:
@@ -163,35 +215,63 @@ def validate_dataset(dataset_dir: Path, decode: bool = True, progress: bool = Fa
         problems += file_problems
         if not file_problems:
             intact.add(entry.file)
+    # A shard of the listed size whose hash differs is read anyway: the row checksums name the bad rows.
+    readable = intact | {
+        e.file
+        for e in manifest.shards
+        if (dataset_dir / e.file).is_file() and (dataset_dir / e.file).stat().st_size == e.bytes
+    }
 
     seen: dict[str, str] = {}
+    index_path = dataset_dir / INDEX_NAME
+    index = read_table_file(index_path) if manifest.index.file in intact else None
     total = sum(entry.rows for entry in manifest.shards)
     bar = progress_bar(total=total, desc=f"validate {manifest.info.name}", unit="row", disable=not progress)
-    for entry in dict.fromkeys(e.file for e in manifest.shards):
-        path = dataset_dir / entry
-        if entry not in intact:
+
+    def check(path: Path, row_number: int, values: dict) -> None:
+        key = values["key"]
+        if key in seen:
+            problems.append(Problem(str(path), row_number, f"key {key!r} also in {seen[key]}"))
+        seen[key] = f"{path.name} row {row_number}"
+        problems.extend(_check_image_row(path, row_number, values, decode))
+        bar.update()
+
+    checked: set[str] = set()
+    for shard_number, shard in enumerate(manifest.shards):
+        entry, path = shard.file, dataset_dir / shard.file
+        if entry in checked or entry not in readable:
             continue
+        checked.add(entry)
         reader = _open_stream(path, IMAGE_SCHEMA, problems)
         if reader is None:
             continue
         row_number = 0
         try:
             for batch in reader:
+                batch.validate(full=True)  # offsets inside their buffers before any value is read
                 for values in batch.to_pylist():
-                    key = values["key"]
-                    if key in seen:
-                        problems.append(Problem(str(path), row_number, f"key {key!r} also in {seen[key]}"))
-                    seen[key] = f"{path.name} row {row_number}"
-                    problems += _check_image_row(path, row_number, values, decode)
+                    check(path, row_number, values)
                     row_number += 1
-                    bar.update()
         except (pa.ArrowException, OSError) as error:
-            problems.append(Problem(str(path), row_number, f"cannot be read past this row ({error})"))
+            # The stream cannot be followed past a corrupted row; the index says which row it is and
+            # where the next ones start, so every other row is still checked.
+            located = _indexed_rows(index, shard_number)
+            if row_number >= len(located):
+                problems.append(Problem(str(path), row_number, f"cannot be read past this row ({error})"))
+                continue
+            source = pa.memory_map(str(path))
+            for number in range(row_number, len(located)):
+                offset, key = located[number]
+                try:
+                    batch = read_batch_at(source, offset, IMAGE_SCHEMA)
+                    batch.validate(full=True)
+                    check(path, number, batch.to_pylist()[0])
+                except (pa.ArrowException, OSError) as row_error:
+                    label = row_label(_key_values(key))
+                    problems.append(Problem(str(path), number, f"{label}: cannot be read ({row_error})"))
     bar.close()
 
-    index_path = dataset_dir / INDEX_NAME
-    if manifest.index.file in intact:
-        index = read_table_file(index_path)
+    if index is not None:
         if sorted(index.column("key").to_pylist()) != sorted(seen) and not problems:
             problems.append(Problem(str(index_path), None, "keys differ from the keys in the shards"))
     for entry, schema in ((manifest.meshes, MESH_SCHEMA), (manifest.lights, LIGHT_SCHEMA)):

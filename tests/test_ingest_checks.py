@@ -1,0 +1,344 @@
+"""Convention checks before any row is written: the mistakes users make with cameras, units and images,
+each stopped or its views quarantined with a message naming the cause; clean captures pass silently.
+
+The mutated captures are :mod:`helpers.checks_capture`'s (a custom capture whose images show the head);
+the clean captures of the four dataset layouts are a reduced synthetic world. Every command goes through
+the top-level ``relightanyone`` command and its error boundary.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from helpers.checks_capture import head_pose, make_rendered_capture
+from helpers.small_worlds import make_world, reduced_preset
+
+from relightanyone.align.geometry import similarity, transform_points
+from relightanyone.cli import cli
+from relightanyone.format.reader import NormalizedDataset
+from relightanyone.ingest.checks import CameraCase, camera_problem, explain_cameras, mismatched_frames
+from relightanyone.render.mesh import read_obj
+from relightanyone.synth.presets import DatasetSize
+from relightanyone.synth.template import make_template, write_obj
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+# ------------------------------------------------------------------------------------------- mutations
+def edit_cameras(root: Path, change) -> None:
+    """Apply ``change(K, w2c, width, height) -> (K, w2c)`` to every camera of ``cameras.json``."""
+    path = root / "cameras.json"
+    document = json.loads(path.read_text())
+    for camera in document["cameras"].values():
+        K, w2c = change(np.array(camera["K"]), np.array(camera["w2c"]), camera["width"], camera["height"])
+        camera["K"], camera["w2c"] = K.tolist(), w2c.tolist()
+    path.write_text(json.dumps(document))
+
+
+def scale_obj(path: Path, factor: float) -> None:
+    vertices, faces = read_obj(path)
+    write_obj(path, vertices * factor, faces)
+
+
+def meshes_in_mm(root: Path) -> None:
+    """Meshes and template written in millimetres, the capture still declared in metres."""
+    for path in (root / "meshes").rglob("*.obj"):
+        scale_obj(path, 1000.0)
+    scale_obj(root / "template.obj", 1000.0)
+
+
+def capture_in_mm(root: Path) -> None:
+    """Camera translations and meshes in millimetres, declared metres (the template stays in metres)."""
+    for path in (root / "meshes").rglob("*.obj"):
+        scale_obj(path, 1000.0)
+
+    def to_mm(K, w2c, width, height):
+        w2c = w2c.copy()
+        w2c[:3, 3] *= 1000.0
+        return K, w2c
+
+    edit_cameras(root, to_mm)
+
+
+def camera_to_world(root: Path) -> None:
+    edit_cameras(root, lambda K, w2c, w, h: (K, np.linalg.inv(w2c)))
+
+
+def opengl_axes(root: Path) -> None:
+    edit_cameras(root, lambda K, w2c, w, h: (K, np.diag([1.0, -1.0, -1.0, 1.0]) @ w2c))
+
+
+def full_sensor_K(root: Path) -> None:
+    """K of a sensor 4x the size of the image files."""
+
+    def sensor(K, w2c, width, height):
+        K = K.copy()
+        K[:2, :2] *= 4
+        K[:2, 2] = (K[:2, 2] + 0.5) * 4 - 0.5
+        return K, w2c
+
+    edit_cameras(root, sensor)
+
+
+def principal_point_offset(root: Path) -> None:
+    def offset(K, w2c, width, height):
+        K = K.copy()
+        K[0, 2] -= (width - 1) / 2
+        K[1, 2] -= (height - 1) / 2
+        return K, w2c
+
+    edit_cameras(root, offset)
+
+
+def transposed_rotation(root: Path) -> None:
+    def transpose(K, w2c, width, height):
+        w2c = w2c.copy()
+        w2c[:3, :3] = w2c[:3, :3].T
+        return K, w2c
+
+    edit_cameras(root, transpose)
+
+
+DATASET_MISTAKES = {
+    # mutation -> (the check that stops it, words the finding must hold)
+    "meshes-mm": (meshes_in_mm, "head-size", ["1000x larger than the rig", "in mm"]),
+    "capture-mm": (capture_in_mm, "head-size", ["whole capture looks like mm"]),
+    "c2w": (camera_to_world, "facing", ["camera-to-world", "invert them"]),
+    "opengl": (opengl_axes, "in-front", ["OpenGL camera axes", "flip the cameras' y and z"]),
+    "full-sensor-K": (full_sensor_K, "principal-point", ["K fits an image 4x larger", "for 96x128 images"]),
+    "pp-offset": (principal_point_offset, "principal-point", ["offsets from the image centre"]),
+    "transposed": (transposed_rotation, "facing", ["rotations look transposed"]),
+}
+
+
+def run(*args: str):
+    return CliRunner().invoke(cli, [str(a) for a in args])
+
+
+def ingest_custom(capture: Path, out: Path, *extra: str):
+    return run("ingest", "custom", capture, "--out", out, "--preset", "tiny", *extra)
+
+
+def quarantine(out: Path) -> list[dict]:
+    path = out / "custom" / "quarantine.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.is_file() else []
+
+
+@pytest.fixture
+def capture(tmp_path) -> Path:
+    return make_rendered_capture(tmp_path / "capture")
+
+
+def test_clean_capture_passes_every_check_silently(capture, tmp_path):
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    assert "convention checks: all passed" in result.output
+    assert "check " not in result.output.replace("convention checks", "")
+    assert quarantine(tmp_path / "out") == []
+    assert len(NormalizedDataset(tmp_path / "out" / "custom")) == 15
+
+
+@pytest.mark.parametrize("mistake", sorted(DATASET_MISTAKES))
+def test_dataset_level_mistake_stops_before_writing_naming_the_cause(capture, tmp_path, mistake):
+    mutate, check, words = DATASET_MISTAKES[mistake]
+    mutate(capture)
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 1, result.output
+    finding = next(line for line in result.output.splitlines() if line.strip().startswith(f"check {check}:"))
+    for word in words:
+        assert word in finding
+    assert f"--accept-check {check}" in finding
+    assert "nothing written" in result.output.splitlines()[-1]
+    assert not (tmp_path / "out" / "custom").exists()
+
+
+def test_one_camera_given_camera_to_world_is_quarantined_naming_the_cause(capture, tmp_path):
+    path = capture / "cameras.json"
+    document = json.loads(path.read_text())
+    document["cameras"]["c3"]["w2c"] = np.linalg.inv(np.array(document["cameras"]["c3"]["w2c"])).tolist()
+    path.write_text(json.dumps(document))
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    refused = quarantine(tmp_path / "out")
+    assert {e["item"] for e in refused} == {f"s1/00000{f}/c3/full" for f in range(3)}
+    assert all("camera-to-world" in e["reason"] and e["stage"] == "check" for e in refused)
+    assert len(NormalizedDataset(tmp_path / "out" / "custom")) == 12
+
+
+def test_swapped_images_quarantine_both_views_naming_the_pair(capture, tmp_path):
+    for frame in ("000000", "000001"):
+        folder = capture / "images" / "s1" / frame
+        first, second = (folder / "c0.png").read_bytes(), (folder / "c2.png").read_bytes()
+        (folder / "c0.png").write_bytes(second)
+        (folder / "c2.png").write_bytes(first)
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    refused = {entry["item"]: entry["reason"] for entry in quarantine(tmp_path / "out")}
+    expected = {f"s1/00000{f}/{c}/full" for f in (0, 1) for c in ("c0", "c2")}
+    assert set(refused) == expected
+    assert all("cameras c0 and c2 look swapped" in reason for reason in refused.values())
+
+
+def test_upside_down_image_is_quarantined_with_its_orientation(capture, tmp_path):
+    path = capture / "images" / "s1" / "000000" / "c3.png"
+    cv2.imwrite(str(path), cv2.imread(str(path))[::-1, ::-1])
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    [entry] = quarantine(tmp_path / "out")
+    assert entry["item"] == "s1/000000/c3/full" and entry["stage"] == "check"
+    assert "upside down relative to its mask" in entry["reason"]
+
+
+def other_pose_mesh(capture: Path) -> None:
+    """Frame 1 gets the mesh of a head pose 8 degrees and 13 mm away from what its images show."""
+    template = make_template(12)
+    angle = np.radians(8.0)
+    tilt = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])
+    wrong = head_pose(1) @ similarity(1.0, tilt, [0.013, 0.0, 0.0])
+    write_obj(
+        capture / "meshes" / "s1" / "000001.obj", transform_points(wrong, template.vertices), template.faces
+    )
+
+
+def test_mesh_of_another_pose_quarantines_the_frame(capture, tmp_path):
+    other_pose_mesh(capture)
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    refused = quarantine(tmp_path / "out")
+    assert {e["item"] for e in refused} == {f"s1/000001/c{k}/full" for k in range(5)}
+    assert all("mesh of another frame or head pose" in e["reason"] for e in refused)
+
+
+def test_view_partly_off_its_foreground_in_a_good_frame_is_written_after_all(capture, tmp_path):
+    """A view held back as doubtful (part of the head dark, as under black hair) is released when its
+    frame agrees with the subject's other frames."""
+    path = capture / "images" / "s1" / "000001" / "c2.png"
+    image = cv2.imread(str(path))
+    rows = np.flatnonzero(image.max(axis=(1, 2)) > 0)
+    image[rows[0] : rows[0] + (rows[-1] - rows[0]) // 8] = 0
+    cv2.imwrite(str(path), image)
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    assert quarantine(tmp_path / "out") == []
+    assert len(NormalizedDataset(tmp_path / "out" / "custom")) == 15
+
+
+def test_mismatched_frames_need_other_frames_to_compare_with():
+    shares = {0: [1.0, 0.99, 1.0], 1: [0.9, 0.93, 0.91], 2: [1.0, 0.98]}
+    bad, baseline = mismatched_frames(shares)
+    assert set(bad) == {1} and baseline == pytest.approx(0.99)
+    assert mismatched_frames({1: [0.9, 0.93, 0.91]})[0] == {}
+    assert mismatched_frames({0: [0.95, 0.96], 1: [0.95, 0.94]})[0] == {}
+
+
+def test_accepted_check_is_not_applied_and_is_recorded_in_the_manifest(capture, tmp_path):
+    other_pose_mesh(capture)
+    result = ingest_custom(capture, tmp_path / "out", "--accept-check", "silhouette")
+    assert result.exit_code == 0, result.output
+    assert "not applied: silhouette" in result.output
+    assert quarantine(tmp_path / "out") == []
+    manifest = json.loads((tmp_path / "out" / "custom" / "manifest.json").read_text())
+    assert manifest["accepted_checks"] == ["silhouette"]
+    assert NormalizedDataset(tmp_path / "out" / "custom").manifest.info.accepted_checks == ("silhouette",)
+
+
+def test_unknown_check_name_is_refused(capture, tmp_path):
+    result = ingest_custom(capture, tmp_path / "out", "--accept-check", "everything")
+    assert result.exit_code == 1 and "unknown check everything" in result.output
+
+
+def test_dry_run_and_doctor_run_the_checks_and_write_nothing(capture, tmp_path):
+    camera_to_world(capture)
+    for command in (
+        ["ingest", "custom", capture, "--out", tmp_path / "out", "--dry-run"],
+        ["doctor", "custom", capture],
+    ):
+        result = run(*command)
+        assert result.exit_code == 1, result.output
+        assert "camera-to-world matrices" in result.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_doctor_lists_view_findings(capture, tmp_path):
+    path = capture / "images" / "s1" / "000002" / "c1.png"
+    cv2.imwrite(str(path), cv2.imread(str(path))[::-1])
+    result = run("doctor", "custom", capture)
+    assert result.exit_code == 0, result.output
+    assert "camera c1 is flipped vertically relative to its mask" in result.output
+    assert "doctor: nothing written" in result.output
+
+
+# ------------------------------------------------------------------------------------ pure functions
+def test_camera_problem_names_each_check_in_order():
+    K = np.array([[200.0, 0, 47.5], [0, 200.0, 63.5], [0, 0, 1]])
+    w2c = np.eye(4)
+    w2c[2, 3] = 1.0
+    head = np.random.default_rng(0).normal(0, 0.05, (50, 3))
+    assert camera_problem(K, w2c, 96, 128, head) is None
+    mirrored = w2c @ np.diag([-1.0, 1, 1, 1])
+    assert camera_problem(K, mirrored, 96, 128, head).startswith("rotation:")
+    assert camera_problem(K * [[1, 1, 4], [1, 1, 4], [1, 1, 1]], w2c, 96, 128, head).startswith(
+        "principal-point:"
+    )
+    assert camera_problem(K, np.diag([1.0, -1, -1, 1]) @ w2c, 96, 128, head).startswith("in-front:")
+    far = w2c.copy()
+    far[0, 3] = 2.0
+    assert camera_problem(K, far, 96, 128, head).startswith("facing:")
+    assert camera_problem(K * [[20, 1, 1], [1, 20, 1], [1, 1, 1]], w2c, 96, 128, head).startswith(
+        "projection:"
+    )
+
+
+def test_k_scale_is_read_from_the_principal_points_not_only_from_what_fits():
+    """Several factors may put the head inside the image; the one that centres the principal points wins."""
+    head = np.random.default_rng(1).normal(0, 0.02, (50, 3))
+    cases = []
+    for k in range(6):
+        w2c = np.eye(4)
+        w2c[:3, 3] = [0.01 * k, 0.0, 1.0]
+        sensor = np.array(
+            [[800.0 * 8, 0, (47.5 + 3 + 0.5) * 8 - 0.5], [0, 800.0 * 8, (63.5 + 0.5) * 8 - 0.5], [0, 0, 1]]
+        )
+        cases.append(CameraCase((f"v{k}",), f"c{k}", sensor, w2c, 96, 128, head))
+    assert "8x larger" in explain_cameras(cases)
+
+
+# --------------------------------------------------------------------------- clean dataset layouts
+CLEAN = reduced_preset(
+    d1=DatasetSize(train_subjects=1, test_subjects=0, cameras=4, image_size=(64, 96), lights=6),
+    d2=DatasetSize(train_subjects=1, test_subjects=0, cameras=4, image_size=(52, 80), frames=2, lights=4),
+    d3=DatasetSize(train_subjects=1, test_subjects=0, cameras=8, image_size=(80, 60), lights=4),
+    d4=DatasetSize(train_subjects=1, test_subjects=0, cameras=4, image_size=(64, 96), frames=2, lights=4),
+)
+LAYOUTS = {
+    "d1": ("faceolat", "faceolat"),
+    "d2": ("ava256", "ava256"),
+    "d3": ("stereo-rig", "stereo_rig"),
+    "d4": ("nersemble", "nersemble"),
+}
+
+
+@pytest.fixture(scope="module")
+def clean_world(tmp_path_factory) -> Path:
+    return make_world(tmp_path_factory.mktemp("checks_world"), CLEAN, seed=7, datasets=tuple(LAYOUTS))
+
+
+@pytest.mark.parametrize("dataset", sorted(LAYOUTS))
+def test_clean_dataset_layouts_raise_nothing(clean_world, dataset):
+    command, folder = LAYOUTS[dataset]
+    result = run(
+        "doctor",
+        command,
+        clean_world / folder,
+        "--tracking",
+        clean_world / "tracking" / dataset,
+        "--template",
+        clean_world / "answers" / "template" / "template.obj",
+    )
+    assert result.exit_code == 0, result.output
+    assert "convention checks: all passed" in result.output, result.output
