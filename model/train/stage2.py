@@ -48,6 +48,7 @@ from relightanyone.format.torch_dataset import (
     collate_rows,
     image_hwc,
     iteration_loader,
+    random_crop,
 )
 from relightanyone.locking import output_lock
 from relightanyone.model.device import loader_workers
@@ -106,7 +107,6 @@ from relightanyone.model.train.sampling import (
     CROP_STREAM,
     background_colours,
     iteration_generator,
-    random_crop,
 )
 from relightanyone.progress import progress_bar
 from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
