@@ -1,13 +1,15 @@
 """Ingest throughput through an existing Ray cluster with 1 and 2 worker nodes: writes bench/results/ray.json.
 
 A head node with no CPUs of its own and N one-CPU worker nodes are started with ``ray start`` (as a lab
-starts them on its machines); the demo world's Ava-256 capture is ingested through the cluster with
+starts them on its machines); a synthetic world's Ava-256 capture (``--world-preset``, default ``tiny``)
+is ingested through the cluster with
 ``--executor ray`` joined by address, after a 2-subject warm-up run on the same cluster (so worker start
 and imports are not timed). The ratio of 2 nodes to 1 is the speed-up a second machine's worker gives;
 on this 2-core machine it is bounded by what two processes get at once (``parallel_ceiling`` in
 bench/results/ingest.json) and by the load of the machine, which is recorded.
 
-Usage: ``python bench/ray.py [--world DIR] [--out bench/results/ray.json] [--repeats N]``.
+Usage: ``python bench/ray.py [--world DIR] [--world-preset tiny|demo] [--out bench/results/ray.json]
+[--repeats N]``; the world is generated (Ava-256 only) when absent.
 """
 
 from __future__ import annotations
@@ -24,9 +26,20 @@ BENCH = Path(__file__).resolve().parent
 sys.path.insert(0, str(BENCH))
 sys.path.insert(0, str(BENCH.parent / "tests"))
 
-from ingest import DEFAULT_WORLD, ensure_world, machine, make_plan  # noqa: E402  (bench/ingest.py)
+from ingest import REPO, machine, make_plan  # noqa: E402  (bench/ingest.py)
+
+DEFAULT_WORLD = REPO / "demo-out" / "ray-bench-world"
 
 GOAL_TWO_OVER_ONE = 1.7
+
+
+def ensure_world(world: Path, preset: str) -> None:
+    if (world / "world.json").is_file():
+        return
+    from relightanyone.synth.world import generate_world
+
+    print(f"generating the {preset} world (Ava-256 only) into {world} ...", flush=True)
+    generate_world(world, preset, seed=0, datasets=("d2",), progress=True, overwrite=True, workers=2)
 
 
 def ingest_through(address: str, plan, world: Path, out: Path, workers: int) -> dict:
@@ -78,16 +91,18 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--world", type=Path, default=DEFAULT_WORLD)
+    parser.add_argument("--world-preset", default="tiny", choices=("tiny", "demo"))
     parser.add_argument("--out", type=Path, default=BENCH / "results" / "ray.json")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
-    ensure_world(args.world)
+    ensure_world(args.world, args.world_preset)
     load_at_start = list(os.getloadavg())
     with tempfile.TemporaryDirectory(prefix="ray-bench-") as scratch:
         one, two = (cluster_run(args.world, nodes, args.repeats, Path(scratch)) for nodes in (1, 2))
     ratio = round(two["median_images_per_s"] / one["median_images_per_s"], 3)
     result = {
-        "what": "demo-world Ava-256 ingest through a Ray cluster joined by address (head 0 CPUs, 1-CPU worker nodes)",
+        "world_preset": args.world_preset,
+        "what": "Ava-256 ingest of a synthetic world through a Ray cluster joined by address (head 0 CPUs, 1-CPU worker nodes)",
         "one_worker_node": one,
         "two_worker_nodes": two,
         "two_over_one": ratio,
