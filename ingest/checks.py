@@ -609,6 +609,14 @@ def on_foreground(foreground: np.ndarray, mask: np.ndarray) -> float | None:
     return float(np.count_nonzero(foreground & mask)) / pixels
 
 
+def foreground_on_outline(foreground: np.ndarray, whole: np.ndarray) -> float:
+    """Share of the image's ``foreground (h, w)`` bool that lies on the whole mesh's outline ``whole (h,
+    w)``: the other direction of the agreement, blind to skin in deep shadow (as black as a black
+    backdrop, so off the foreground), which the head's share on the foreground is not."""
+    pixels = int(np.count_nonzero(foreground))
+    return float(np.count_nonzero(foreground & whole)) / pixels if pixels else 0.0
+
+
 @dataclass(frozen=True)
 class FrameShape:
     """A frame's tracked mesh as the image check sees it: the exact ``silhouette`` (a
@@ -688,6 +696,10 @@ def check_view_image(
             )
     if share >= ON_FOREGROUND:
         return ViewVerdict(camera, share)
+    # Part of the head is off the foreground: shadowed skin, or the wrong camera or image. Another reading
+    # that puts the head clearly better on the foreground names the mistake; otherwise the view agrees when
+    # its foreground lies on the head's outline (the shadow case), and is judged by the larger share.
+    share = max(share, foreground_on_outline(foreground, whole))
 
     def agreement(K_alt: np.ndarray, w2c_alt: np.ndarray) -> tuple[float, float]:
         """(share, outline overlap) of the head seen by another camera on this image's foreground."""
@@ -728,6 +740,8 @@ def check_view_image(
             True,
             best[1],
         )
+    if share >= ON_FOREGROUND:
+        return ViewVerdict(camera, share)
     return ViewVerdict(camera, share, f"{stated} (at least {ON_FOREGROUND:.0%} expected)")
 
 
