@@ -702,10 +702,13 @@ def check_view_image(
     share = max(share, foreground_on_outline(foreground, whole))
 
     def agreement(K_alt: np.ndarray, w2c_alt: np.ndarray) -> tuple[float, float]:
-        """(share, outline overlap) of the head seen by another camera on this image's foreground."""
+        """(share, outline overlap) of the head seen by another camera on this image's foreground; the
+        share (an exact silhouette, the costly part) only when the outline overlaps enough to explain."""
         K_alt = subsampled_camera(K_alt, stride)
-        alt_share = on_foreground(foreground, silhouette.mask(K_alt, w2c_alt, size)) or 0.0
-        return alt_share, overlap_ratio(foreground, hull_mask(shape.whole, K_alt, w2c_alt, size))
+        alt_overlap = overlap_ratio(foreground, hull_mask(shape.whole, K_alt, w2c_alt, size))
+        if alt_overlap < max(FLIP_OVERLAP, overlap + ALTERNATIVE_GAIN):
+            return 0.0, alt_overlap
+        return on_foreground(foreground, silhouette.mask(K_alt, w2c_alt, size)) or 0.0, alt_overlap
 
     def explains(scores: tuple[float, float]) -> bool:
         alt_share, alt_overlap = scores
