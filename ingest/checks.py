@@ -702,19 +702,20 @@ def check_view_image(
     share = max(share, foreground_on_outline(foreground, whole))
 
     def agreement(K_alt: np.ndarray, w2c_alt: np.ndarray) -> tuple[float, float]:
-        """(share, outline overlap) of the head seen by another camera on this image's foreground; the
-        share (an exact silhouette, the costly part) only when the outline overlaps enough to explain."""
+        """(share, outline overlap) of the head seen by another camera on this image's foreground, judged
+        both ways as the view itself; the share (an exact silhouette, the costly part) only when the
+        outline overlaps the foreground clearly better than as given (relative: in deep shadow no outline
+        overlaps the foreground well)."""
         K_alt = subsampled_camera(K_alt, stride)
-        alt_overlap = overlap_ratio(foreground, hull_mask(shape.whole, K_alt, w2c_alt, size))
-        if alt_overlap < max(FLIP_OVERLAP, overlap + ALTERNATIVE_GAIN):
+        alt_whole = hull_mask(shape.whole, K_alt, w2c_alt, size)
+        alt_overlap = overlap_ratio(foreground, alt_whole)
+        if alt_overlap < overlap + ALTERNATIVE_GAIN:
             return 0.0, alt_overlap
-        return on_foreground(foreground, silhouette.mask(K_alt, w2c_alt, size)) or 0.0, alt_overlap
+        alt_share = on_foreground(foreground, silhouette.mask(K_alt, w2c_alt, size)) or 0.0
+        return max(alt_share, foreground_on_outline(foreground, alt_whole)), alt_overlap
 
     def explains(scores: tuple[float, float]) -> bool:
-        alt_share, alt_overlap = scores
-        return alt_share >= ALTERNATIVE_AGREEMENT and alt_overlap >= max(
-            FLIP_OVERLAP, overlap + ALTERNATIVE_GAIN
-        )
+        return scores[0] >= ALTERNATIVE_AGREEMENT  # its outline gained already (else the share is 0)
 
     for meaning, fix, K_alt, w2c_alt in conventions() if conventions is not None else ():
         scores = agreement(K_alt, w2c_alt)
