@@ -112,6 +112,14 @@ class EvaluationInputs:
     true_olat_image: TrueOlatImage | None = None
 
 
+def other_training_runs(inputs: EvaluationInputs) -> dict[str, Path]:
+    """The ablation arms' runs and the single-stage candidates, labelled, for the split check."""
+    runs = {f"single-stage candidate {i + 1}": Path(p) for i, p in enumerate(inputs.single_stage_variants)}
+    for arm, (stage1, stage2) in inputs.ablation.items():
+        runs |= {f"{arm} stage 1": Path(stage1), f"{arm} stage 2": Path(stage2)}
+    return runs
+
+
 @dataclass
 class Comparison:
     """Per-image metrics of one method on a set of cases, with one example row for the image grid."""
@@ -262,7 +270,11 @@ class Evaluation:
         self.inputs = inputs
         self.settings = settings
         self.training_runs = training_runs(
-            inputs.stage1, inputs.stage2, inputs.single_stage, list(inputs.datasets.values())
+            inputs.stage1,
+            inputs.stage2,
+            inputs.single_stage,
+            list(inputs.datasets.values()),
+            other_training_runs(inputs),
         )
         held_out = [
             f"{NormalizedDataset(path).name}/{subject}"

@@ -286,6 +286,9 @@ def train_stage2_command(
     """Train stage 2 (relighting UNet on a frozen stage-1 run) or the single-stage baseline.
 
     Example: relightanyone train stage2 --data out/d1 --stage1 runs/s1 --preset demo --out runs/s2
+
+    Under torchrun (torchrun --nproc_per_node 2 -m relightanyone train stage2 ...) the processes train
+    data-parallel; --batch-size is per process.
     """
     if not single_stage and stage1_run is None:
         raise click.UsageError(

@@ -59,7 +59,10 @@ def _summary(results) -> list[str]:
     metavar="STAGE",
     help="Run only these stages (repeatable); the stages they need must have completed before.",
 )
-@dry_run_option("Print which stages would run or be skipped, and why; run nothing.")
+@dry_run_option(
+    "Print which stages would run or be skipped, and why, and each training stage's estimated peak "
+    "memory per GPU; run nothing."
+)
 @quiet_option("Do not stream the stages' own output (it is still in _stage.log).")
 def run_command(
     pipeline: str,
@@ -77,6 +80,7 @@ def run_command(
     """
     import sys
 
+    from relightanyone.pipelines.dag.memory import stage_memory
     from relightanyone.pipelines.dag.pipeline_file import parse_var_overrides
     from relightanyone.pipelines.dag.runner import execute, load_pipeline, plan
 
@@ -89,6 +93,9 @@ def run_command(
                 "stop" if decision.reason.startswith("cannot run") else "run " if decision.run else "skip"
             )
             click.echo(f"{action}  {decision.stage.ljust(width)}  {decision.reason}")
+            memory = stage_memory(loaded.stages[decision.stage]) if decision.run else None
+            if memory:
+                click.echo(f"      {' ' * width}  memory: {memory}")
         click.echo(f"dry run: {sum(d.run for d in decisions)} of {len(decisions)} stage(s) would run")
         blocked = [d.stage for d in decisions if d.reason.startswith("cannot run")]
         if blocked:

@@ -25,11 +25,10 @@ from relightanyone.format.schema import (
     build_image_row,
 )
 from relightanyone.format.shards import ShardWriter
-from relightanyone.format.torch_dataset import NormalizedTorchDataset, collate_rows
+from relightanyone.format.torch_dataset import NormalizedTorchDataset, collate_rows, random_crop
 from relightanyone.format.validate import validate_path
 from relightanyone.model.metrics import masked_psnr
 from relightanyone.model.train.losses import composite_over_background, masked_l1
-from relightanyone.model.train.sampling import random_crop
 from relightanyone.render.camera import look_at_w2c
 
 SIZE = 16  # the rows' side in pixels

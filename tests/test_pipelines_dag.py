@@ -398,6 +398,9 @@ def test_dry_run_of_the_real_template_names_missing_downloads(tmp_path):
     real = Path(__file__).resolve().parents[1] / "pipelines" / "real.yaml"
     (tmp_path / "data" / "ava256").mkdir(parents=True)
     (tmp_path / "data" / "vhap" / "ava256").mkdir(parents=True)
+    (tmp_path / "data" / "vhap" / "template.obj").write_text("")
+    (tmp_path / "data" / "splits").mkdir()
+    (tmp_path / "data" / "splits" / "ava256.json").write_text("{}")
     result = CliRunner().invoke(
         run_command,
         [str(real), "--dry-run", "--var", f"data={tmp_path / 'data'}", "--var", f"out={tmp_path / 'out'}"],

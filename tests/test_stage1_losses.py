@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from relightanyone.format.torch_dataset import choose_crop, crop_array, random_crop
 from relightanyone.model.networks.gaussians import MAX_SCALE, MIN_SCALE
 from relightanyone.model.networks.presets import LossWeights, get_preset
 from relightanyone.model.train.colour_warmup import colour_cast_error, correction_from_render_matrix
@@ -23,11 +24,8 @@ from relightanyone.model.train.losses import (
 from relightanyone.model.train.sampling import (
     background_colours,
     balanced_batch,
-    choose_crop,
-    crop_array,
     held_out_cameras,
     iteration_generator,
-    random_crop,
 )
 from relightanyone.render.camera import crop_intrinsics
 

@@ -20,6 +20,7 @@ from relightanyone.cli import cli
 from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.model.train.data import Stage1Data
 from relightanyone.model.train.held_out import evaluate_held_out
+from relightanyone.model.train.run import load_run
 from relightanyone.model.train.stage1 import Stage1Config, build_model, train_stage1
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -98,7 +99,7 @@ def test_sigkill_then_resume_gives_the_uninterrupted_weights(world, tmp_path):
 def test_torchrun_two_gloo_processes_average_gradients(world, tmp_path):
     ddp, single = tmp_path / "ddp", tmp_path / "single"
     script = tmp_path / "train.py"
-    script.write_text(train_script(world, ddp, iterations=3, batch_size=1))
+    script.write_text(train_script(world, ddp, evaluate=True, iterations=3, batch_size=1))
     command = [
         sys.executable,
         "-m",
@@ -111,6 +112,14 @@ def test_torchrun_two_gloo_processes_average_gradients(world, tmp_path):
     subprocess.run(command, check=True, env=_env(), timeout=240)
     metrics = json.loads((ddp / "metrics.json").read_text())
     assert metrics["processes"] == 2 and metrics["processes_in_sync"]
+    # Each process scored its share of the held-out views: the gathered means are one process's.
+    one_process = evaluate_held_out(load_run(ddp).model, Stage1Data(world, held_out_per_subject=1))
+    assert set(metrics["held_out"]) == {"da", "db"}
+    for name, scores in one_process.items():
+        shared = metrics["held_out"][name]
+        assert shared["views"] == scores["views"] >= 2
+        assert shared["psnr"] == pytest.approx(scores["psnr"], abs=1e-6)
+        assert shared["ssim"] == pytest.approx(scores["ssim"], abs=1e-7)
     # Two processes with batch 1 see exactly the samples of one process with batch 2.
     train_stage1(
         Stage1Config(

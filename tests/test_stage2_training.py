@@ -16,13 +16,14 @@ from click.testing import CliRunner
 from helpers.sphere_world import LIGHTS, SIZE, lambert_sphere, rig_lights, sphere_camera, sphere_row
 from helpers.sphere_world import tiny_stage2_preset as sphere_tiny_stage2_preset
 from helpers.stage1_world import sphere_dataset, sphere_mesh, tiny_stage1_preset, write_dataset
+from helpers.torchrun import run_torchrun
 
 from relightanyone.cli import cli
 from relightanyone.model.networks.reflectance import camera_centres
 from relightanyone.model.networks.stage2 import texel_mesh_normals
 from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.model.train.stage1 import Stage1Config, train_stage1
-from relightanyone.model.train.stage2 import Stage2Config, Stage2Trainer
+from relightanyone.model.train.stage2 import Stage2Config, Stage2Trainer, train_stage2
 from relightanyone.render.camera import look_at_w2c
 
 LIGHT_INTENSITY = 2.5  # radiant intensity: about 2.5 W/m² on the sphere, radiance 0.2-0.5 per light
@@ -177,6 +178,41 @@ def test_single_stage_flag_trains_through_the_same_trainer(olat_world, tmp_path)
                 dataset, tmp_path / "single", tiny_stage2_preset(), stage1_run=olat_world[1], progress=False
             )
         ).resume_if_possible()
+
+
+@pytest.mark.parametrize("single_stage", [False, True], ids=["stage2", "single-stage"])
+def test_torchrun_two_gloo_processes_match_one_process_with_the_global_batch(
+    olat_world, tmp_path, single_stage
+):
+    dataset, run = olat_world
+
+    def config(out: Path, batch_size: int) -> Stage2Config:
+        return Stage2Config(
+            dataset,
+            out,
+            tiny_stage2_preset(iterations=3, checkpoint_every=3, batch_size=batch_size),
+            stage1_run=None if single_stage else run,
+            single_stage=single_stage,
+            stage1_preset=tiny_stage1_preset(crop_size=SIZE) if single_stage else None,
+            progress=False,
+            device="cpu",
+        )
+
+    run_torchrun("relightanyone.model.train.stage2", "train_stage2", config(tmp_path / "ddp", 1), tmp_path)
+    metrics = json.loads((tmp_path / "ddp" / "metrics.json").read_text())
+    assert metrics["processes"] == 2 and metrics["processes_in_sync"]
+    # Two processes with batch 1 see exactly the samples (views, crops, backgrounds) of one with batch 2.
+    train_stage2(config(tmp_path / "single", 2))
+    parallel = load_checkpoint(tmp_path / "ddp" / "checkpoint.pt")["model"]
+    serial = load_checkpoint(tmp_path / "single" / "checkpoint.pt")["model"]
+    # Adam's first steps move each weight by about ±lr whatever the gradient's size, so the few weights
+    # whose gradient is ~0 may take either sign from rounding; all others must agree.
+    agreeing = sum(int(torch.isclose(parallel[n], t, atol=1e-5, rtol=1e-4).sum()) for n, t in serial.items())
+    total = sum(t.numel() for t in serial.values())
+    assert agreeing >= 0.999 * total, f"{total - agreeing} of {total} weights differ"
+    train_stage2(config(tmp_path / "half", 1))  # one process with half the batch trains otherwise
+    half = load_checkpoint(tmp_path / "half" / "checkpoint.pt")["model"]
+    assert any(not torch.allclose(half[n], t, atol=1e-5, rtol=1e-4) for n, t in serial.items())
 
 
 def test_cli_trains_stage2_and_explains_bad_input(olat_world, tmp_path):

@@ -24,12 +24,11 @@ import torch
 
 from relightanyone.errors import InputError
 from relightanyone.format.schema import MANIFEST_NAME, TEMPLATE_NAME, make_mesh_key
-from relightanyone.format.torch_dataset import LEARNED, NormalizedTorchDataset, collate_rows
+from relightanyone.format.torch_dataset import LEARNED, NormalizedTorchDataset, collate_rows, random_crop
 from relightanyone.model.train.sampling import (
     CROP_STREAM,
     held_out_cameras,
     iteration_generator,
-    random_crop,
 )
 from relightanyone.render.mesh import load_obj
 

@@ -3,7 +3,8 @@
 Every training subject keeps a few cameras out of training (:class:`relightanyone.model.train.data.Stage1Data`).
 They are rendered at the stored image size with the subject's own lighting code and compared with
 the ground truth by the toolkit's metrics (:mod:`relightanyone.model.metrics`): per-view masked PSNR and
-SSIM, averaged over the views of a dataset.
+SSIM, averaged over the views of a dataset. Under torchrun the processes share the views
+(:func:`relightanyone.model.train.distributed.shard`) and gather the scores.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from relightanyone.model.metrics import masked_psnr, masked_ssim
 from relightanyone.model.networks.render import render_gaussians
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.train.data import Stage1Data, ViewRef
+from relightanyone.model.train.distributed import ProcessGroup, gather_items, shard
 
 
 @torch.no_grad()
@@ -43,34 +45,56 @@ def render_view(
     return {"render": render.cpu(), "image": item["image"][None], "mask": item["mask"][None]}
 
 
+def held_out_selection(
+    data: Stage1Data, max_views_per_dataset: int | None = None
+) -> list[tuple[int, ViewRef]]:
+    """(dataset index, view) of every held-out view scored, dataset by dataset; with
+    ``max_views_per_dataset`` an evenly spread subset of each dataset's views."""
+    selection = []
+    for index in range(len(data.names)):
+        views = data.held_out_views[index]
+        if max_views_per_dataset is not None and len(views) > max_views_per_dataset:
+            picks = np.linspace(0, len(views) - 1, max_views_per_dataset).round().astype(int)
+            views = [views[i] for i in picks]
+        selection += [(index, view) for view in views]
+    return selection
+
+
 def evaluate_held_out(
     model: Stage1Model,
     data: Stage1Data,
     use_lighting: bool = True,
     dataset_colour: bool = False,
     max_views_per_dataset: int | None = None,
+    group: ProcessGroup | None = None,
 ) -> dict[str, dict[str, float]]:
     """Mean held-out PSNR (dB) and SSIM per dataset name: ``{name: {"psnr", "ssim", "views"}}``.
 
     ``max_views_per_dataset`` evaluates an evenly spread subset of the held-out views (for quick checks).
+    Under torchrun every process of ``group`` must call this: each renders and scores its share of the
+    views, the scores are gathered and averaged in view order, so every process returns the scores one
+    process would have computed.
     """
     was_training = model.training
     model.eval()
+    selection = held_out_selection(data, max_views_per_dataset)
+    scores = []
+    for position, (index, view) in shard(selection, group) if group else enumerate(selection):
+        out = render_view(model, data, view, use_lighting, dataset_colour)
+        psnr = float(masked_psnr(out["render"], out["image"], out["mask"])[0])
+        ssim = float(masked_ssim(out["render"], out["image"], out["mask"])[0])
+        scores.append((position, index, psnr, ssim))
+    if group:
+        scores = gather_items(scores, group)
+    scores.sort()
+    model.train(was_training)
     results = {}
     for index, name in enumerate(data.names):
-        views = data.held_out_views[index]
-        if max_views_per_dataset is not None and len(views) > max_views_per_dataset:
-            picks = np.linspace(0, len(views) - 1, max_views_per_dataset).round().astype(int)
-            views = [views[i] for i in picks]
-        psnrs, ssims = [], []
-        for view in views:
-            out = render_view(model, data, view, use_lighting, dataset_colour)
-            psnrs.append(float(masked_psnr(out["render"], out["image"], out["mask"])[0]))
-            ssims.append(float(masked_ssim(out["render"], out["image"], out["mask"])[0]))
+        psnrs = [psnr for _, i, psnr, _ in scores if i == index]
+        ssims = [ssim for _, i, _, ssim in scores if i == index]
         results[name] = {
             "psnr": float(np.mean(psnrs)) if psnrs else float("nan"),
             "ssim": float(np.mean(ssims)) if ssims else float("nan"),
-            "views": len(views),
+            "views": len(psnrs),
         }
-    model.train(was_training)
     return results

@@ -1,4 +1,5 @@
-"""Deterministic batch sampling and crops for stage-1 and stage-2 training.
+"""Deterministic batch sampling for stage-1 and stage-2 training (the crop transform itself is
+:func:`relightanyone.format.torch_dataset.random_crop`).
 
 Every random choice of iteration ``t`` is drawn from a generator seeded with ``(seed, t, ...)``. The
 sampler therefore has no hidden state: its position is the iteration number, so resumed runs draw
@@ -12,14 +13,9 @@ small dataset is seen as often as a large one.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
 import numpy as np
-import torch
 
 from relightanyone.errors import InputError
-from relightanyone.render.camera import crop_intrinsics
 
 BATCH_STREAM = 0
 CROP_STREAM = 1
@@ -56,64 +52,6 @@ def balanced_batch(
     rng = iteration_generator(seed, iteration, BATCH_STREAM)
     datasets = rng.integers(0, len(views_per_dataset), size=batch_size)
     return [(int(d), int(rng.integers(0, views_per_dataset[d]))) for d in datasets]
-
-
-@dataclass(frozen=True)
-class CropBox:
-    """A crop window in stored-image pixels; may extend past the image (padded with zeros, mask 0)."""
-
-    x0: int
-    y0: int
-    size: int
-
-
-def choose_crop(mask: np.ndarray, size: int, rng: np.random.Generator) -> CropBox:
-    """A ``size``×``size`` window centred on a random foreground pixel, kept inside the image when the
-    image is large enough (otherwise centred on the image, padded).
-
-    mask: (H, W) float or bool foreground.
-    """
-    height, width = mask.shape
-    foreground = np.flatnonzero(np.asarray(mask) > 0.5)
-    if foreground.size:
-        centre = int(foreground[rng.integers(0, foreground.size)])
-        cy, cx = divmod(centre, width)
-    else:
-        cy, cx = height // 2, width // 2
-
-    def place(centre: int, extent: int) -> int:
-        if extent <= size:
-            return (extent - size) // 2
-        return int(np.clip(centre - size // 2, 0, extent - size))
-
-    return CropBox(x0=place(cx, width), y0=place(cy, height), size=size)
-
-
-def crop_array(array: np.ndarray, box: CropBox) -> np.ndarray:
-    """Crop (C, H, W) to (C, size, size), filling the part outside the image with zeros."""
-    channels, height, width = array.shape
-    out = np.zeros((channels, box.size, box.size), dtype=array.dtype)
-    src_x0, src_y0 = max(box.x0, 0), max(box.y0, 0)
-    src_x1, src_y1 = min(box.x0 + box.size, width), min(box.y0 + box.size, height)
-    if src_x1 > src_x0 and src_y1 > src_y0:
-        out[:, src_y0 - box.y0 : src_y1 - box.y0, src_x0 - box.x0 : src_x1 - box.x0] = array[
-            :, src_y0:src_y1, src_x0:src_x1
-        ]
-    return out
-
-
-def random_crop(item: dict[str, Any], size: int, rng: np.random.Generator) -> dict[str, Any]:
-    """A dataset item (:class:`~relightanyone.format.torch_dataset.NormalizedTorchDataset`) cropped to the
-    window :func:`choose_crop` draws from its mask: image (3, size, size), mask and valid (1, size, size)
-    and K (float64) of the crop; the other fields as they are. A window past the image's edge is padding:
-    invalid."""
-    box = choose_crop(item["mask"][0].numpy(), size, rng)
-    cropped = {
-        name: torch.from_numpy(crop_array(item[name].numpy(), box))
-        for name in ("image", "mask", "valid")
-        if name in item
-    }
-    return {**item, **cropped, "K": torch.from_numpy(crop_intrinsics(item["K"].numpy(), box.x0, box.y0))}
 
 
 # At least this share of each subject's cameras trains, whatever the preset asks to hold out: a preset

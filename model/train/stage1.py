@@ -32,7 +32,7 @@ from relightanyone.errors import InputError
 from relightanyone.format.schema import TEMPLATE_NAME
 from relightanyone.format.torch_dataset import iteration_loader
 from relightanyone.locking import output_lock
-from relightanyone.model.device import loader_workers, resolve_device
+from relightanyone.model.device import loader_workers
 from relightanyone.model.networks.gaussians import load_template_binding
 from relightanyone.model.networks.precision import check_precision
 from relightanyone.model.networks.presets import Stage1Preset
@@ -45,6 +45,13 @@ from relightanyone.model.train.checkpoint import (
     save_checkpoint,
 )
 from relightanyone.model.train.data import Stage1Data
+from relightanyone.model.train.distributed import (
+    ProcessGroup,
+    average_gradients,
+    broadcast_weights,
+    setup_process_group,
+    sync_report,
+)
 from relightanyone.model.train.held_out import evaluate_held_out
 from relightanyone.model.train.losses import (
     as_floats,
@@ -94,36 +101,6 @@ class Stage1Config:
     extra_info: dict = field(default_factory=dict)
 
 
-@dataclass
-class ProcessGroup:
-    rank: int
-    world_size: int
-    device: torch.device
-
-    @property
-    def is_main(self) -> bool:
-        return self.rank == 0
-
-
-def setup_process_group(device_name: str = "auto") -> ProcessGroup:
-    """Join the torchrun process group when ``WORLD_SIZE`` > 1 (gloo on CPU, NCCL with CUDA).
-
-    ``device_name`` is a ``--device`` value (:func:`~relightanyone.model.device.resolve_device`); on CUDA
-    under torchrun each process takes the GPU of its ``LOCAL_RANK``.
-    """
-    world_size = int(os.environ.get("WORLD_SIZE", "1"))
-    device = resolve_device(device_name)
-    use_cuda = device.type == "cuda"
-    if world_size > 1 and not dist.is_initialized():
-        dist.init_process_group("nccl" if use_cuda else "gloo")
-    rank = dist.get_rank() if world_size > 1 else 0
-    if use_cuda:
-        if world_size > 1 or device.index is None:
-            device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
-        torch.cuda.set_device(device)
-    return ProcessGroup(rank=rank, world_size=world_size, device=device)
-
-
 def stage1_batch(
     data: Stage1Data,
     batch_size: int,
@@ -158,27 +135,6 @@ def build_model(
     return Stage1Model(
         preset, template_vertices, binding, len(data.subjects), len(data.names), flags, lighting_code
     )
-
-
-def average_gradients(model: torch.nn.Module, world_size: int) -> None:
-    """All-reduce every gradient (missing ones count as zero) and divide by the number of processes."""
-    parameters = [p for p in model.parameters() if p.requires_grad]
-    for parameter in parameters:
-        if parameter.grad is None:
-            parameter.grad = torch.zeros_like(parameter)
-    flat = torch.cat([p.grad.reshape(-1) for p in parameters])
-    dist.all_reduce(flat)
-    flat /= world_size
-    offset = 0
-    for parameter in parameters:
-        count = parameter.numel()
-        parameter.grad.copy_(flat[offset : offset + count].view_as(parameter))
-        offset += count
-
-
-def weights_checksum(model: torch.nn.Module) -> float:
-    """Sum of all parameters in float64: identical across processes when they are in sync."""
-    return float(sum(p.detach().double().sum() for p in model.parameters()))
 
 
 def _check_resumable(
@@ -229,9 +185,7 @@ def _train_stage1(config: Stage1Config, group: ProcessGroup) -> dict:
         group.device
     )
     model.precision = check_precision(config.precision)
-    if group.world_size > 1:  # every process starts from rank 0's weights
-        for tensor in list(model.parameters()) + list(model.buffers()):
-            dist.broadcast(tensor.data, src=0)
+    broadcast_weights(model, group)  # every process starts from rank 0's weights
     optimizer = torch.optim.Adam(model.parameters(), lr=preset.learning_rate)
     start = 0
     checkpoint_path = out / CHECKPOINT_NAME
@@ -342,24 +296,21 @@ def _train_stage1(config: Stage1Config, group: ProcessGroup) -> dict:
         "iterations": preset.iterations,
         "seconds_per_iteration": step_seconds / steps if steps else None,
     }
-    if group.world_size > 1:
-        checksums = [None] * group.world_size
-        dist.all_gather_object(checksums, weights_checksum(model))
-        metrics["processes"] = group.world_size
-        metrics["processes_in_sync"] = len(set(checksums)) == 1
-    if group.is_main:
-        if config.evaluate:
-            metrics["held_out"] = evaluate_held_out(
-                model, data, use_lighting, max_views_per_dataset=config.eval_views_per_dataset
+    metrics.update(sync_report(model, group))
+    if config.evaluate:  # every process scores its share of the held-out views
+        metrics["held_out"] = evaluate_held_out(
+            model, data, use_lighting, max_views_per_dataset=config.eval_views_per_dataset, group=group
+        )
+        if config.warmup and config.uncalibrated:
+            metrics["held_out_with_colour_matrix"] = evaluate_held_out(
+                model,
+                data,
+                use_lighting,
+                dataset_colour=True,
+                max_views_per_dataset=config.eval_views_per_dataset,
+                group=group,
             )
-            if config.warmup and config.uncalibrated:
-                metrics["held_out_with_colour_matrix"] = evaluate_held_out(
-                    model,
-                    data,
-                    use_lighting,
-                    dataset_colour=True,
-                    max_views_per_dataset=config.eval_views_per_dataset,
-                )
+    if group.is_main:
         if config.warmup:
             metrics["colour_matrices"] = {
                 name: model.colour_matrices[i].detach().cpu().tolist()

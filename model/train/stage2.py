@@ -17,11 +17,15 @@ divided by the full-on rig's mean diffuse irradiance factor (so it is in albedo 
 all subjects (their mean texture) lets the network ignore its colour input and predict one albedo for
 everyone; the per-subject prior ties ρ to the input from the first iteration. Adam, lr 5e-4.
 
+Data-parallel under ``torchrun`` like stage 1: each process trains on its slice of one global batch, the
+gradients are averaged every step and only rank 0 writes the run folder.
+
 Run folder: ``run.json``, ``checkpoint.pt`` (atomic, resumable), ``metrics.json``, ``tensorboard/``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import json
@@ -33,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.distributed as dist
 
 from relightanyone.errors import InputError
 from relightanyone.format.reader import NormalizedDataset, load_manifest
@@ -43,9 +48,10 @@ from relightanyone.format.torch_dataset import (
     collate_rows,
     image_hwc,
     iteration_loader,
+    random_crop,
 )
 from relightanyone.locking import output_lock
-from relightanyone.model.device import loader_workers, resolve_device
+from relightanyone.model.device import loader_workers
 from relightanyone.model.networks.gaussians import load_template_binding
 from relightanyone.model.networks.precision import check_precision
 from relightanyone.model.networks.presets import Stage1Preset, Stage2Preset
@@ -71,6 +77,13 @@ from relightanyone.model.train.checkpoint import (
     restore_rng_state,
     save_checkpoint,
 )
+from relightanyone.model.train.distributed import (
+    ProcessGroup,
+    average_gradients,
+    broadcast_weights,
+    setup_process_group,
+    sync_report,
+)
 from relightanyone.model.train.losses import (
     as_floats,
     batch_means,
@@ -94,7 +107,6 @@ from relightanyone.model.train.sampling import (
     CROP_STREAM,
     background_colours,
     iteration_generator,
-    random_crop,
 )
 from relightanyone.progress import progress_bar
 from relightanyone.render.lights import full_on_rig_from_table, olat_rig_from_table
@@ -233,13 +245,18 @@ class OlatFrames:
         return self.meshes[keys[0]] if keys else None
 
     def load_batch(
-        self, views: list[OlatView], crop_size: int, seed: int, iteration: int
+        self, views: list[OlatView], crop_size: int, seed: int, iteration: int, first_sample: int = 0
     ) -> dict[str, torch.Tensor]:
         """image (B, 3, c, c), mask and valid (B, 1, c, c), K (B, 3, 3), w2c (B, 4, 4), light_positions and
-        light_intensities (B, Lmax, 3), tracked (B, V, 3), has_mesh (B,), subject_index (B,)."""
+        light_intensities (B, Lmax, 3), tracked (B, V, 3), has_mesh (B,), subject_index (B,).
+
+        ``views`` are the global batch's samples ``first_sample ..``; each sample's crop is drawn from its
+        own generator, so a process's slice is cropped as in a one-process run of the whole batch."""
         items = [
             random_crop(
-                self.rows[view.position], crop_size, iteration_generator(seed, iteration, CROP_STREAM, i)
+                self.rows[view.position],
+                crop_size,
+                iteration_generator(seed, iteration, CROP_STREAM, first_sample + i),
             )
             for i, view in enumerate(views)
         ]
@@ -271,14 +288,15 @@ class OlatFrames:
 class Stage2Trainer:
     """Builds the model of either mode, draws batches, computes the loss, trains and checkpoints."""
 
-    def __init__(self, config: Stage2Config) -> None:
+    def __init__(self, config: Stage2Config, group: ProcessGroup | None = None) -> None:
         if config.single_stage_loss not in SINGLE_STAGE_LOSSES:
             raise InputError(
                 f"single-stage loss must be one of {', '.join(SINGLE_STAGE_LOSSES)}, got {config.single_stage_loss!r}"
             )
         self.config = config
         self.preset = config.preset
-        self.device = resolve_device(config.device)
+        self.group = group or setup_process_group(config.device)
+        self.device = self.group.device
         torch.manual_seed(config.seed)
         if config.single_stage:
             self._build_single_stage()
@@ -286,6 +304,7 @@ class Stage2Trainer:
             self._build_stage2()
         self.trainable.precision = check_precision(config.precision)
         self.trainable.checkpoint_maps = config.checkpoint_maps
+        broadcast_weights(self.trainable, self.group)  # every process starts from rank 0's weights
         self.optimizer = torch.optim.Adam(self.trainable.parameters(), lr=self.preset.learning_rate)
         self.start = 0
 
@@ -389,6 +408,8 @@ class Stage2Trainer:
             olat_batch,
             self.frames,
             preset.batch_size,
+            preset.batch_size * self.group.world_size,
+            self.group.rank * preset.batch_size,
             preset.full_on_fraction,
             preset.crop_size,
             self.config.seed,
@@ -490,12 +511,16 @@ class Stage2Trainer:
         """Back-propagate the batch's loss in ``config.accumulation`` micro-batches (each loss weighted by its
         share of the samples, so the summed gradient is the whole batch's); returns the batch's terms."""
         size = batch["image"].shape[0]
+        first_sample = (
+            self.group.rank * self.preset.batch_size
+        )  # of this process's slice, in the global batch
         parts = max(1, min(self.config.accumulation, size))
         bounds = [round(size * k / parts) for k in range(parts + 1)]
         terms: dict[str, torch.Tensor | float] = {}
         for begin, end in zip(bounds[:-1], bounds[1:], strict=True):
             share = (end - begin) / size
-            total, part_terms, _ = self.loss({k: v[begin:end] for k, v in batch.items()}, iteration, begin)
+            micro_batch = {k: v[begin:end] for k, v in batch.items()}
+            total, part_terms, _ = self.loss(micro_batch, iteration, first_sample + begin)
             (total * share).backward()
             for name, value in part_terms.items():
                 terms[name] = value if name.endswith("_lambda") else terms.get(name, 0.0) + value * share
@@ -528,17 +553,20 @@ class Stage2Trainer:
         from torch.utils.tensorboard import SummaryWriter
 
         out = Path(self.config.out)
+        main = self.group.is_main
         self.resume_if_possible()
-        out.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(self.template_path, out / TEMPLATE_NAME)
-        _write_json(out / RUN_INFO_NAME, self._run_info())
-        writer = SummaryWriter(str(out / "tensorboard"), purge_step=self.start)
+        writer = None
+        if main:
+            out.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(self.template_path, out / TEMPLATE_NAME)
+            _write_json(out / RUN_INFO_NAME, self._run_info())
+            writer = SummaryWriter(str(out / "tensorboard"), purge_step=self.start)
         self.trainable.train()
         mode = "single-stage" if self.config.single_stage else "stage2"
         progress = progress_bar(
             total=self.preset.iterations,
             initial=self.start,
-            disable=not self.config.progress,
+            disable=not (self.config.progress and main),
             desc=mode,
             unit="it",
         )
@@ -554,6 +582,8 @@ class Stage2Trainer:
             batch = {k: v.to(self.device, non_blocking=on_gpu) for k, v in next(batches).items()}
             self.optimizer.zero_grad(set_to_none=True)
             terms = self.accumulate(batch, iteration)
+            if self.group.distributed:
+                average_gradients(self.trainable, self.group.world_size)
             self.optimizer.step()
             seconds += time.perf_counter() - began
             first, last, steps = first or terms, terms, steps + 1
@@ -563,21 +593,26 @@ class Stage2Trainer:
             if done % self.preset.log_every == 0 or done == self.preset.iterations:
                 logged = as_floats(terms)
                 progress.set_postfix({k: f"{logged[k]:.4g}" for k in ("total", "l1", "ssim")})
-                for name, value in logged.items():
-                    writer.add_scalar(f"loss/{name}", value, done)
-            if done % self.preset.checkpoint_every == 0 or done == self.preset.iterations:
+                if writer is not None:
+                    for name, value in logged.items():
+                        writer.add_scalar(f"loss/{name}", value, done)
+            if main and (done % self.preset.checkpoint_every == 0 or done == self.preset.iterations):
                 save_checkpoint(out / CHECKPOINT_NAME, self._checkpoint(done))
         progress.close()
         del batches, loader  # stops the loader's worker processes
-        writer.close()
         metrics = {
             "mode": mode,
             "iterations": self.preset.iterations,
             "seconds_per_iteration": seconds / steps if steps else None,
             "first_losses": as_floats(first) if first else None,
             "last_losses": as_floats(last) if last else None,
+            **sync_report(self.trainable, self.group),
         }
-        _write_json(out / METRICS_NAME, metrics)
+        if main:
+            writer.close()
+            _write_json(out / METRICS_NAME, metrics)
+        if self.group.distributed:  # the others leave once rank 0 has written the run
+            dist.barrier()
         return metrics
 
     def _checkpoint(self, iteration: int) -> dict:
@@ -615,19 +650,33 @@ class Stage2Trainer:
 
 
 def olat_batch(
-    frames: OlatFrames, batch_size: int, full_on_fraction: float, crop_size: int, seed: int, iteration: int
+    frames: OlatFrames,
+    batch_size: int,
+    global_batch: int,
+    first_sample: int,
+    full_on_fraction: float,
+    crop_size: int,
+    seed: int,
+    iteration: int,
 ) -> dict[str, torch.Tensor]:
-    """The batch of ``iteration``, on the host: views drawn (:meth:`OlatFrames.draw`) and loaded
+    """This process's slice (``batch_size`` samples from ``first_sample``) of the global batch of
+    ``iteration``, on the host: views drawn (:meth:`OlatFrames.draw`) and loaded
     (:meth:`OlatFrames.load_batch`); a function of the iteration alone."""
-    views = frames.draw(batch_size, full_on_fraction, seed, iteration)
-    return frames.load_batch(views, crop_size, seed, iteration)
+    views = frames.draw(global_batch, full_on_fraction, seed, iteration)
+    slice_views = views[first_sample : first_sample + batch_size]
+    return frames.load_batch(slice_views, crop_size, seed, iteration, first_sample)
 
 
 def train_stage2(config: Stage2Config) -> dict:
-    """Train a stage-2 (or, with ``single_stage``, a single-stage baseline) run; returns its metrics. The
-    run folder is locked for the whole run (:mod:`relightanyone.locking`)."""
-    with output_lock(config.out):
-        return Stage2Trainer(config).train()
+    """Train a stage-2 (or, with ``single_stage``, a single-stage baseline) run; returns its metrics.
+
+    Under torchrun every process trains on its slice of the global batch (``preset.batch_size`` per
+    process) and gradients are averaged each step (:mod:`relightanyone.model.train.distributed`). The
+    process that writes the run folder (rank 0) holds its lock (:mod:`relightanyone.locking`) for the
+    whole run."""
+    group = setup_process_group(config.device)
+    with output_lock(config.out) if group.is_main else contextlib.nullcontext():
+        return Stage2Trainer(config, group).train()
 
 
 def _write_json(path: Path, payload: dict) -> None:

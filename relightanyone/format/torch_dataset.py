@@ -14,7 +14,8 @@ through :class:`NormalizedTorchDataset`. Each item is a dict::
     key, dataset, subject, camera, pattern, split: str;  frame, width, height: int
 
 ``K`` and ``w2c`` stay in the stored float64, so code that crops or rescales an image shifts the camera
-before rounding it to float32 once. :func:`collate_rows` stacks items into a batch
+before rounding it to float32 once; :func:`random_crop` is the training crop of an item (image, mask,
+valid pixels and ``K`` together). :func:`collate_rows` stacks items into a batch
 (``DataLoader(dataset, collate_fn=collate_rows)``).
 
 A row is fetched by key from the memory-mapped shards (O(1) in the number of rows); the selection
@@ -28,6 +29,7 @@ of one iteration (:class:`IterationBatches`), made from these rows by worker pro
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +40,7 @@ from relightanyone.errors import InputError
 from relightanyone.format.colour_alignment import read_learned_colour_matrix
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import ImageRow
+from relightanyone.render.camera import crop_intrinsics
 
 INDEX_COLUMNS = ("key", "subject", "frame", "camera", "pattern", "split")
 LEARNED = "learned"  # colour_matrix: the dataset's learned matrix (colour_alignment.json) when it has one
@@ -132,6 +135,64 @@ class NormalizedTorchDataset(torch.utils.data.Dataset):
             "width": row.width,
             "height": row.height,
         }
+
+
+@dataclass(frozen=True)
+class CropBox:
+    """A crop window in stored-image pixels; may extend past the image (padded with zeros, mask 0)."""
+
+    x0: int
+    y0: int
+    size: int
+
+
+def choose_crop(mask: np.ndarray, size: int, rng: np.random.Generator) -> CropBox:
+    """A ``size``×``size`` window centred on a random foreground pixel, kept inside the image when the
+    image is large enough (otherwise centred on the image, padded).
+
+    mask: (H, W) float or bool foreground.
+    """
+    height, width = mask.shape
+    foreground = np.flatnonzero(np.asarray(mask) > 0.5)
+    if foreground.size:
+        centre = int(foreground[rng.integers(0, foreground.size)])
+        cy, cx = divmod(centre, width)
+    else:
+        cy, cx = height // 2, width // 2
+
+    def place(centre: int, extent: int) -> int:
+        if extent <= size:
+            return (extent - size) // 2
+        return int(np.clip(centre - size // 2, 0, extent - size))
+
+    return CropBox(x0=place(cx, width), y0=place(cy, height), size=size)
+
+
+def crop_array(array: np.ndarray, box: CropBox) -> np.ndarray:
+    """Crop (C, H, W) to (C, size, size), filling the part outside the image with zeros."""
+    channels, height, width = array.shape
+    out = np.zeros((channels, box.size, box.size), dtype=array.dtype)
+    src_x0, src_y0 = max(box.x0, 0), max(box.y0, 0)
+    src_x1, src_y1 = min(box.x0 + box.size, width), min(box.y0 + box.size, height)
+    if src_x1 > src_x0 and src_y1 > src_y0:
+        out[:, src_y0 - box.y0 : src_y1 - box.y0, src_x0 - box.x0 : src_x1 - box.x0] = array[
+            :, src_y0:src_y1, src_x0:src_x1
+        ]
+    return out
+
+
+def random_crop(item: dict[str, Any], size: int, rng: np.random.Generator) -> dict[str, Any]:
+    """A dataset item (:class:`NormalizedTorchDataset`) cropped to the
+    window :func:`choose_crop` draws from its mask: image (3, size, size), mask and valid (1, size, size)
+    and K (float64) of the crop; the other fields as they are. A window past the image's edge is padding:
+    invalid."""
+    box = choose_crop(item["mask"][0].numpy(), size, rng)
+    cropped = {
+        name: torch.from_numpy(crop_array(item[name].numpy(), box))
+        for name in ("image", "mask", "valid")
+        if name in item
+    }
+    return {**item, **cropped, "K": torch.from_numpy(crop_intrinsics(item["K"].numpy(), box.x0, box.y0))}
 
 
 def image_hwc(item: dict[str, Any]) -> np.ndarray:
