@@ -609,6 +609,14 @@ def on_foreground(foreground: np.ndarray, mask: np.ndarray) -> float | None:
     return float(np.count_nonzero(foreground & mask)) / pixels
 
 
+def foreground_on_outline(foreground: np.ndarray, whole: np.ndarray) -> float:
+    """Share of the image's ``foreground (h, w)`` bool that lies on the whole mesh's outline ``whole (h,
+    w)``: the other direction of the agreement, blind to skin in deep shadow (as black as a black
+    backdrop, so off the foreground), which the head's share on the foreground is not."""
+    pixels = int(np.count_nonzero(foreground))
+    return float(np.count_nonzero(foreground & whole)) / pixels if pixels else 0.0
+
+
 @dataclass(frozen=True)
 class FrameShape:
     """A frame's tracked mesh as the image check sees it: the exact ``silhouette`` (a
@@ -688,18 +696,26 @@ def check_view_image(
             )
     if share >= ON_FOREGROUND:
         return ViewVerdict(camera, share)
+    # Part of the head is off the foreground: shadowed skin, or the wrong camera or image. Another reading
+    # that puts the head clearly better on the foreground names the mistake; otherwise the view agrees when
+    # its foreground lies on the head's outline (the shadow case), and is judged by the larger share.
+    share = max(share, foreground_on_outline(foreground, whole))
 
     def agreement(K_alt: np.ndarray, w2c_alt: np.ndarray) -> tuple[float, float]:
-        """(share, outline overlap) of the head seen by another camera on this image's foreground."""
+        """(share, outline overlap) of the head seen by another camera on this image's foreground, judged
+        both ways as the view itself; the share (an exact silhouette, the costly part) only when the
+        outline overlaps the foreground clearly better than as given (relative: in deep shadow no outline
+        overlaps the foreground well)."""
         K_alt = subsampled_camera(K_alt, stride)
+        alt_whole = hull_mask(shape.whole, K_alt, w2c_alt, size)
+        alt_overlap = overlap_ratio(foreground, alt_whole)
+        if alt_overlap < overlap + ALTERNATIVE_GAIN:
+            return 0.0, alt_overlap
         alt_share = on_foreground(foreground, silhouette.mask(K_alt, w2c_alt, size)) or 0.0
-        return alt_share, overlap_ratio(foreground, hull_mask(shape.whole, K_alt, w2c_alt, size))
+        return max(alt_share, foreground_on_outline(foreground, alt_whole)), alt_overlap
 
     def explains(scores: tuple[float, float]) -> bool:
-        alt_share, alt_overlap = scores
-        return alt_share >= ALTERNATIVE_AGREEMENT and alt_overlap >= max(
-            FLIP_OVERLAP, overlap + ALTERNATIVE_GAIN
-        )
+        return scores[0] >= ALTERNATIVE_AGREEMENT  # its outline gained already (else the share is 0)
 
     for meaning, fix, K_alt, w2c_alt in conventions() if conventions is not None else ():
         scores = agreement(K_alt, w2c_alt)
@@ -728,6 +744,8 @@ def check_view_image(
             True,
             best[1],
         )
+    if share >= ON_FOREGROUND:
+        return ViewVerdict(camera, share)
     return ViewVerdict(camera, share, f"{stated} (at least {ON_FOREGROUND:.0%} expected)")
 
 

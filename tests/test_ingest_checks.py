@@ -236,6 +236,20 @@ def test_view_partly_off_its_foreground_in_a_good_frame_is_written_after_all(cap
     assert len(NormalizedDataset(tmp_path / "out" / "custom")) == 15
 
 
+def test_head_half_in_black_shadow_passes_with_no_finding(capture, tmp_path):
+    """Skin in deep shadow is as black as the backdrop: with one side of the head pure black in every view
+    of a frame, the head is half off the foreground, yet the foreground lies on the head."""
+    for path in sorted((capture / "images" / "s1" / "000001").glob("*.png")):
+        image = cv2.imread(str(path))
+        columns = np.flatnonzero(image.max(axis=(0, 2)) > 0)
+        image[:, (columns[0] + columns[-1]) // 2 :] = 0
+        cv2.imwrite(str(path), image)
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    assert quarantine(tmp_path / "out") == []
+    assert len(NormalizedDataset(tmp_path / "out" / "custom")) == 15
+
+
 def test_mismatched_frames_need_other_frames_to_compare_with():
     shares = {0: [1.0, 0.99, 1.0], 1: [0.9, 0.93, 0.91], 2: [1.0, 0.98]}
     bad, baseline = mismatched_frames(shares)
