@@ -8,7 +8,7 @@ and imports are not timed). The ratio of 2 nodes to 1 is the speed-up a second m
 on this 2-core machine it is bounded by what two processes get at once (``parallel_ceiling`` in
 bench/results/ingest.json) and by the load of the machine, which is recorded.
 
-Usage: ``python bench/ray.py [--world DIR] [--world-preset tiny|demo] [--out bench/results/ray.json]
+Usage: ``python bench/ray_executor.py [--world DIR] [--world-preset tiny|demo] [--out bench/results/ray.json]
 [--repeats N]``; the world is generated (Ava-256 only) when absent.
 """
 
