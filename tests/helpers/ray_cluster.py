@@ -15,7 +15,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-READY_POLLS = 600  # ``ray status`` calls at most while the nodes join (each waits on Ray itself)
+READY_POLLS = 600  # state probes at most while a node joins (each probe waits on Ray itself)
 
 
 def _free_port() -> int:
@@ -30,7 +30,12 @@ def _ray_command() -> str:
 
 # A throw-away cluster on loopback: no token authentication (Ray enables it by default for ``ray start``;
 # a lab's cluster keeps it, and its clients find the token as any Ray client does).
-CLUSTER_ENVIRONMENT = {"RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0"}
+# A loaded machine starts a raylet slowly: Ray's default wait for it is too short there.
+CLUSTER_ENVIRONMENT = {
+    "RAY_AUTH_MODE": "disabled",
+    "RAY_USAGE_STATS_ENABLED": "0",
+    "RAY_raylet_start_wait_time_s": "300",
+}
 
 
 def _start_node(arguments: list[str], temp_dir: Path, log: Path) -> subprocess.Popen:
@@ -47,7 +52,7 @@ def _start_node(arguments: list[str], temp_dir: Path, log: Path) -> subprocess.P
 
 
 def _alive_cpus(address: str) -> float:
-    """CPUs of the cluster's live nodes, asked of the cluster's own state API (0 when not reachable)."""
+    """CPUs of the cluster's live nodes, asked of the cluster's own state API (-1 when not reachable)."""
     probe = (
         "import ray, sys\n"
         "ray.init(address=sys.argv[1], log_to_driver=False)\n"
@@ -62,7 +67,18 @@ def _alive_cpus(address: str) -> float:
     try:
         return float(result.stdout.strip().splitlines()[-1])
     except (ValueError, IndexError):
-        return 0.0
+        return -1.0
+
+
+def _wait_for_cpus(address: str, wanted: float, nodes: list[subprocess.Popen], temp_dir: Path) -> None:
+    """Return once the cluster's live nodes hold ``wanted`` CPUs; raise with the nodes' logs if one exits."""
+    for _ in range(READY_POLLS):
+        if any(node.poll() is not None for node in nodes):
+            logs = "\n".join(p.read_text(errors="replace")[-2000:] for p in temp_dir.glob("*.log"))
+            raise RuntimeError(f"a Ray node exited while starting:\n{logs}")
+        if _alive_cpus(address) >= wanted:
+            return
+    raise RuntimeError(f"the Ray cluster at {address} did not reach {wanted} CPUs")
 
 
 def _stop(node: subprocess.Popen) -> None:
@@ -103,6 +119,9 @@ def ray_cluster(worker_nodes: int = 1, cpus_per_node: int = 1, head_cpus: int | 
         )
     ]
     try:
+        # One node at a time, each joined before the next starts: nodes starting together on one small
+        # machine can time out waiting for each other.
+        _wait_for_cpus(address, head_cpus, nodes, temp_dir)
         for k in range(worker_nodes):
             nodes.append(
                 _start_node(
@@ -111,15 +130,7 @@ def ray_cluster(worker_nodes: int = 1, cpus_per_node: int = 1, head_cpus: int | 
                     temp_dir / f"worker-{k}.log",
                 )
             )
-        wanted = head_cpus + cpus_per_node * worker_nodes
-        for _ in range(READY_POLLS):
-            if any(node.poll() is not None for node in nodes):
-                logs = "\n".join(p.read_text(errors="replace")[-2000:] for p in temp_dir.glob("*.log"))
-                raise RuntimeError(f"a Ray node exited while starting:\n{logs}")
-            if _alive_cpus(address) >= wanted:
-                break
-        else:
-            raise RuntimeError(f"the Ray cluster at {address} did not reach {wanted} CPUs")
+            _wait_for_cpus(address, head_cpus + cpus_per_node * (k + 1), nodes, temp_dir)
         yield address
     finally:
         for node in reversed(nodes):
