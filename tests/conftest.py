@@ -9,6 +9,8 @@ Modules whose tensors are tiny run on one torch thread: ``pytestmark = pytest.ma
 
 from __future__ import annotations
 
+import fcntl
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -37,3 +39,13 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def ray_exclusive():
+    """Tests that start or join Ray run one at a time on a machine (a file lock across test processes): Ray
+    instances started side by side share ``/tmp/ray`` (its latest session and current-cluster files), and
+    a test process's Ray then interferes with another's."""
+    with open(Path(tempfile.gettempdir()) / "relightanyone-ray-tests.lock", "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        yield

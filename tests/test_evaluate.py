@@ -242,9 +242,11 @@ def test_tables_and_report(evaluated):
         and budget["samples"] == budget["stage1"]["samples"] + (budget["stage2"]["samples"])
     )
     assert results["table1"]["budgets"]["single_stage"]["single_stage"]["stage"] == "single-stage"
-    # A training subject is named by every run that trained on it: stage 1 and each ablation arm's stage 1.
+    # A training subject is named by every run that trained on it: stage 1, the ablation arms' stage 1
+    # runs and the colour warm-ups of their datasets.
     seen = results["table3"]["subjects"]["d2/f00"]["seen_in_training"]
-    assert seen[0] == "stage 1" and all(label.endswith("stage 1") for label in seen), seen
+    assert seen[0] == "stage 1", seen
+    assert all(label.endswith("stage 1") or label == "colour warm-up" for label in seen), seen
     saved = json.loads((out / "evaluation.json").read_text())
     assert saved["table1"]["mean"]["two_stage"]["psnr"] == pytest.approx(
         table1["metrics"]["two_stage"]["psnr"]

@@ -136,6 +136,7 @@ def test_a_resumed_run_and_two_workers_write_the_same_bytes(world, expanded, tmp
 
 
 @pytest.mark.ray
+@pytest.mark.usefixtures("ray_exclusive")
 def test_the_ray_executor_writes_the_same_bytes(world, expanded, tmp_path):
     ray = pytest.importorskip("ray", reason="the ray extra is not installed")
     _, _, folder = expanded

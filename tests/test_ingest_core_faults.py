@@ -21,7 +21,7 @@ from PIL import AvifImagePlugin, Image
 
 from relightanyone.align.colour import srgb_to_linear
 from relightanyone.cli import cli
-from relightanyone.format.overlay import HEAD_COLOUR, reprojection_overlays
+from relightanyone.format.overlay import reprojection_overlays
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.ingest import custom
 from relightanyone.ingest.decode import DecodeError, TaskDecoder, set_decoder_threads
@@ -52,9 +52,12 @@ def test_clean_capture_is_written_with_provenance(capture, tmp_path):
     key = "custom/s1/000001/c2/full"
     (overlay,) = reprojection_overlays(summary.path, keys=[key])
     _, _, mask = dataset.decoded(key)
-    drawn = np.all(overlay == HEAD_COLOUR, axis=-1).reshape(128, 4, 128, 4).any(axis=(1, 3))
+    # The outline is drawn anti-aliased over a 4x nearest-neighbour upscale: a stored pixel was drawn on
+    # when its 4x4 block is no longer uniform.
+    blocks = overlay.astype(np.int16).reshape(128, 4, 128, 4, 3)
+    drawn = (blocks.max(axis=(1, 3)) != blocks.min(axis=(1, 3))).any(axis=-1)
     near_mask = cv2.dilate((mask > 0.5).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    assert drawn.sum() > 200 and (drawn & ~near_mask).sum() == 0
+    assert drawn.sum() > 60 and (drawn & ~near_mask).sum() == 0, (drawn.sum(), (drawn & ~near_mask).sum())
 
 
 def test_corrupt_image_missing_camera_and_bad_mesh_are_quarantined(capture, tmp_path):

@@ -120,6 +120,7 @@ def test_a_second_ingest_into_a_folder_being_written_fails_naming_the_writer(cap
 
 
 @pytest.mark.ray
+@pytest.mark.usefixtures("ray_exclusive")
 def test_ray_executor_gives_the_same_bytes(capture, reference, tmp_path):
     ray = pytest.importorskip("ray", reason="the ray extra is not installed")
     try:

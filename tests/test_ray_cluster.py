@@ -17,11 +17,11 @@ from relightanyone.pipelines.expand.job import expand_dataset, plan_expansion
 
 ray = pytest.importorskip("ray", reason="the ray extra is not installed")
 
-pytestmark = [pytest.mark.ray, pytest.mark.usefixtures("one_torch_thread")]
+pytestmark = [pytest.mark.ray, pytest.mark.usefixtures("one_torch_thread", "ray_exclusive")]
 
 
 @pytest.fixture(scope="module")
-def cluster():
+def cluster(ray_exclusive):
     with ray_cluster(worker_nodes=1, cpus_per_node=1) as address:
         yield address
 
