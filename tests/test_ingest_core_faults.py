@@ -52,12 +52,18 @@ def test_clean_capture_is_written_with_provenance(capture, tmp_path):
     key = "custom/s1/000001/c2/full"
     (overlay,) = reprojection_overlays(summary.path, keys=[key])
     _, _, mask = dataset.decoded(key)
-    # The outline is drawn anti-aliased over a 4x nearest-neighbour upscale: a stored pixel was drawn on
-    # when its 4x4 block is no longer uniform.
+    # The outline is drawn anti-aliased over a 4x nearest-neighbour upscale: a stored pixel was drawn on when
+    # its 4x4 block is no longer uniform, and drawn in the head's colour (not the neck's orange, which
+    # outlines the neck below the mask) when one of its pixels is green-dominant.
     blocks = overlay.astype(np.int16).reshape(128, 4, 128, 4, 3)
-    drawn = (blocks.max(axis=(1, 3)) != blocks.min(axis=(1, 3))).any(axis=-1)
-    near_mask = cv2.dilate((mask > 0.5).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    assert drawn.sum() > 60 and (drawn & ~near_mask).sum() == 0, (drawn.sum(), (drawn & ~near_mask).sum())
+    changed = (blocks.max(axis=(1, 3)) != blocks.min(axis=(1, 3))).any(axis=-1)
+    red, green, blue = blocks[..., 0], blocks[..., 1], blocks[..., 2]
+    greenish = ((green > red + 60) & (green > blue + 60)).any(axis=(1, 3))
+    drawn = changed & greenish
+    near_mask = cv2.dilate((mask > 0.5).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    # A few blended pixels may fall just past the dilated mask; a misplaced mesh would put most of them there.
+    outside = (drawn & ~near_mask).sum()
+    assert drawn.sum() > 60 and outside <= 0.02 * drawn.sum(), (drawn.sum(), outside)
 
 
 def test_corrupt_image_missing_camera_and_bad_mesh_are_quarantined(capture, tmp_path):
