@@ -83,7 +83,7 @@ def main() -> None:
     payload = {
         "benchmark": "stage-1 batch loader",
         "preset": args.preset,
-        "datasets": [str(d) for d in args.data],
+        "datasets": [Path(d).name for d in args.data],  # names only: the folders are this machine's
         "iterations": args.iterations,
         "seconds_per_batch": {k: round(v, 5) for k, v in batches.items()},
         "training_seconds_per_iteration": {k: round(v, 4) for k, v in training.items()},
