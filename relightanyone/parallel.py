@@ -52,7 +52,7 @@ from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
 
-from relightanyone.errors import DependencyError
+from relightanyone.errors import DependencyError, InputError
 
 EXECUTORS = ("local", "ray")
 PR_SET_PDEATHSIG = 1  # prctl(2) option: the signal this process gets when its parent dies
@@ -152,8 +152,26 @@ class Executor:
         except ImportError:
             raise DependencyError("the ray executor needs Ray: pip install 'relightanyone[ray]'") from None
         if not ray.is_initialized():
-            ray.init(**ray_init_arguments(self.address, self.workers, os.environ))
+            arguments = ray_init_arguments(self.address, self.workers, os.environ)
+            joins_cluster = "address" in arguments
+            if joins_cluster and _local_ray_started:
+                # Ray loses a cluster joined after a local Ray in the same process (its tasks then fail
+                # with OwnerDiedError): refuse at once instead.
+                raise InputError(
+                    f"this Python process already started a local Ray, so it cannot join the cluster at "
+                    f"{arguments['address']}: run the job from a new process (restart the interpreter)"
+                )
+            ray.init(**arguments)
+            _mark_local_ray(not joins_cluster)
         return ray
+
+
+_local_ray_started = False
+
+
+def _mark_local_ray(started: bool) -> None:
+    global _local_ray_started
+    _local_ray_started = _local_ray_started or started
 
 
 def cpu_share(workers: int, kind: str = "local") -> int:

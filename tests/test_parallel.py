@@ -7,11 +7,14 @@ from __future__ import annotations
 
 import hashlib
 import os
+import sys
+import types
 
 import numpy as np
 import pytest
 
 from relightanyone import parallel
+from relightanyone.errors import InputError
 from relightanyone.parallel import Executor, cpu_share, ray_init_arguments, shutdown_pools
 
 
@@ -93,6 +96,21 @@ def test_ray_joins_a_given_cluster_as_it_is_or_starts_a_local_one():
     assert ray_init_arguments(None, 3, {"RAY_ADDRESS": "ray://head:10001"}) == joined
     assert ray_init_arguments("auto", 3, {"RAY_ADDRESS": "ray://other:1"})["address"] == "auto"
     assert "num_cpus" not in ray_init_arguments(None, 3, {"RAY_ADDRESS": "auto"})
+
+
+def test_a_process_that_ran_a_local_ray_refuses_to_join_a_cluster(monkeypatch):
+    """Ray loses a cluster joined after a local Ray in the same process; the executor says so instead of
+    letting the tasks fail. A stand-in Ray records what it is asked."""
+    started = []
+    fake_ray = types.SimpleNamespace(is_initialized=lambda: False, init=lambda **kw: started.append(kw))
+    monkeypatch.setitem(sys.modules, "ray", fake_ray)
+    monkeypatch.setattr(parallel, "_local_ray_started", False)
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    Executor("ray", 2)._ray()
+    assert started == [ray_init_arguments(None, 2, {})]
+    with pytest.raises(InputError, match="already started a local Ray.*127.0.0.1:6379.*new process"):
+        Executor("ray", 2, address="127.0.0.1:6379")._ray()
+    assert len(started) == 1
 
 
 def test_bad_executors_are_named():
