@@ -36,6 +36,30 @@ FULL_ON_PATTERN = "full"
 TRAIN_SPLIT = "train"
 
 
+def view_batch(
+    items: list[dict[str, Any]], tracked: list[np.ndarray | None], subject_index: list[int]
+) -> dict[str, torch.Tensor]:
+    """A training batch of B dataset items of one size (``random_crop`` output) with their meshes.
+
+    Returns image (B, 3, H, W), mask and valid (B, 1, H, W), K (B, 3, 3) and w2c (B, 4, 4) float32,
+    tracked (B, V, 3) (zeros for a view without a mesh), has_mesh (B,) float, subject_index (B,) int64.
+    """
+    batch = collate_rows(items)
+    vertex_count = next((t.shape[0] for t in tracked if t is not None), 0)
+    return {
+        "image": batch["image"],
+        "mask": batch["mask"],
+        "valid": batch["valid"],
+        "K": batch["K"].to(torch.float32),
+        "w2c": batch["w2c"].to(torch.float32),
+        "tracked": torch.from_numpy(
+            np.stack([t if t is not None else np.zeros((vertex_count, 3), np.float32) for t in tracked])
+        ),
+        "has_mesh": torch.tensor([float(t is not None) for t in tracked]),
+        "subject_index": torch.tensor(subject_index, dtype=torch.long),
+    }
+
+
 @dataclass(frozen=True)
 class ViewRef:
     """One image row: which dataset, its item there and key, the identity row and the frame of its
@@ -186,19 +210,7 @@ class Stage1Data:
         shapes = {tuple(item["image"].shape) for item in items}
         if len(shapes) > 1:
             raise InputError(f"views of one batch differ in size {sorted(shapes)}; train with a crop size")
-        batch = collate_rows(items)
-        tracked = [self.tracked_vertices(v) for v in views]
-        vertex_count = next((t.shape[0] for t in tracked if t is not None), 0)
         return {
-            "image": batch["image"],
-            "mask": batch["mask"],
-            "valid": batch["valid"],
-            "K": batch["K"].to(torch.float32),
-            "w2c": batch["w2c"].to(torch.float32),
-            "tracked": torch.from_numpy(
-                np.stack([t if t is not None else np.zeros((vertex_count, 3), np.float32) for t in tracked])
-            ),
-            "has_mesh": torch.tensor([float(t is not None) for t in tracked]),
-            "subject_index": torch.tensor([v.subject_index for v in views], dtype=torch.long),
+            **view_batch(items, [self.tracked_vertices(v) for v in views], [v.subject_index for v in views]),
             "dataset_index": torch.tensor([v.dataset_index for v in views], dtype=torch.long),
         }

@@ -45,7 +45,6 @@ from relightanyone.format.schema import LIGHTS_NAME, TEMPLATE_NAME, make_mesh_ke
 from relightanyone.format.torch_dataset import (
     LEARNED,
     NormalizedTorchDataset,
-    collate_rows,
     image_hwc,
     iteration_loader,
     random_crop,
@@ -77,6 +76,7 @@ from relightanyone.model.train.checkpoint import (
     restore_rng_state,
     save_checkpoint,
 )
+from relightanyone.model.train.data import view_batch
 from relightanyone.model.train.distributed import (
     ProcessGroup,
     average_gradients,
@@ -260,28 +260,16 @@ class OlatFrames:
             )
             for i, view in enumerate(views)
         ]
-        batch = collate_rows(items)
         light_positions, light_intensities = batch_lights(self.rig, [list(v.lights) for v in views])
         for sample, view in enumerate(views):
             if view.full_on:  # the full-on pattern's own intensities (shorter exposures per light)
                 light_intensities[sample, : len(view.lights)] = self.full_on_rig.select(
                     list(view.lights)
                 ).intensities
-        tracked = [self.tracked_vertices(v) for v in views]
-        vertex_count = next((t.shape[0] for t in tracked if t is not None), 0)
         return {
-            "image": batch["image"],
-            "mask": batch["mask"],
-            "valid": batch["valid"],
-            "K": batch["K"].to(torch.float32),
-            "w2c": batch["w2c"].to(torch.float32),
+            **view_batch(items, [self.tracked_vertices(v) for v in views], [v.subject_index for v in views]),
             "light_positions": light_positions,
             "light_intensities": light_intensities,
-            "tracked": torch.from_numpy(
-                np.stack([t if t is not None else np.zeros((vertex_count, 3), np.float32) for t in tracked])
-            ),
-            "has_mesh": torch.tensor([float(t is not None) for t in tracked]),
-            "subject_index": torch.tensor([v.subject_index for v in views], dtype=torch.long),
         }
 
 
