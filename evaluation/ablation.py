@@ -13,7 +13,6 @@ An arm is a stage-1 run and the stage-2 run trained on it; its budget is read fr
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +20,7 @@ from relightanyone.errors import InputError
 from relightanyone.model.fit.fitter import RelightableModel, load_relightable_model
 from relightanyone.model.train.budget import run_budget, two_stage_budget
 from relightanyone.model.train.checkpoint import load_checkpoint
-from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
+from relightanyone.model.train.run_files import CHECKPOINT_NAME, read_run_info
 
 # Command-line arm name -> the row it fills in the ablation tables.
 ARM_ROWS = {
@@ -65,7 +64,7 @@ class AblationArm:
 
 def stage1_datasets(stage1: Path) -> dict[str, Path]:
     """Dataset name -> folder of every dataset a stage-1 run trained on (from its run.json)."""
-    info = json.loads((Path(stage1) / RUN_INFO_NAME).read_text())
+    info = read_run_info(stage1)
     return {entry["name"]: Path(entry["path"]) for entry in info.get("datasets", [])}
 
 

@@ -10,7 +10,6 @@ honest way to choose, so several candidates are refused.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,7 @@ import numpy as np
 from relightanyone.errors import InputError
 from relightanyone.evaluation.truth import WorldAnswers
 from relightanyone.format.torch_dataset import NormalizedTorchDataset
-from relightanyone.model.train.run_files import RUN_INFO_NAME
+from relightanyone.model.train.run_files import read_run_info
 
 VALIDATION_SPLIT = "val"
 
@@ -34,7 +33,7 @@ def validation_subjects(dataset_dir: Path, answers: WorldAnswers | None, world_n
 
 def candidate_label(run: Path) -> str:
     """``<folder> (<loss variant>)`` of a single-stage run, from its run.json."""
-    info = json.loads((Path(run) / RUN_INFO_NAME).read_text())
+    info = read_run_info(run)
     return f"{Path(run).name} ({info.get('single_stage_loss') or 'background'} loss)"
 
 

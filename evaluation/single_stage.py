@@ -9,7 +9,6 @@ lights, which is what Table 1 measures.
 from __future__ import annotations
 
 import copy
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,7 +37,7 @@ from relightanyone.model.networks.render import render_views
 from relightanyone.model.networks.single_stage import SingleStageModel
 from relightanyone.model.networks.stage2 import texel_mesh_normals, view_directions
 from relightanyone.model.train.checkpoint import load_checkpoint
-from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
+from relightanyone.model.train.run_files import CHECKPOINT_NAME, read_run_info
 from relightanyone.render.lights import PointLights, full_on_rig_from_table, olat_rig_from_table
 
 
@@ -65,7 +64,7 @@ def load_single_stage_run(run: str | Path, device: torch.device | str = "cpu") -
     checkpoint = load_checkpoint(checkpoint_path)
     if not checkpoint.get("single_stage"):
         raise InputError(f"{run}: a stage-2 run, not a single-stage baseline (trained with --single-stage)")
-    info = json.loads((run / RUN_INFO_NAME).read_text())
+    info = read_run_info(run)
     stage1_preset = Stage1Preset.from_json(checkpoint["stage1_preset"])
     preset = Stage2Preset.from_json(checkpoint["preset"])
     template_vertices, binding = load_template_binding(run / TEMPLATE_NAME, stage1_preset.uv_size)

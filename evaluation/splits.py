@@ -20,7 +20,7 @@ from pathlib import Path
 from relightanyone.errors import InputError
 from relightanyone.format.schema import COLOUR_ALIGNMENT_NAME
 from relightanyone.model.train.colour_warmup import WARMUP_DIR
-from relightanyone.model.train.run_files import RUN_INFO_NAME, TRAINED_VIEWS_KEY
+from relightanyone.model.train.run_files import RUN_INFO_NAME, TRAINED_VIEWS_KEY, read_run_info
 
 HELD_OUT_SPLITS = ("val", "test")
 STAGE2_KINDS = ("stage2", "single-stage")
@@ -34,17 +34,6 @@ class TrainingRun:
     path: Path
     views: dict[str, list[str]]  # "<dataset>/<subject>" -> cameras whose rows reached training
     seed: int | None = None
-
-
-def read_run_info(run_dir: Path) -> dict:
-    """A run's ``run.json``; InputError naming it when it is missing or not JSON."""
-    path = Path(run_dir) / RUN_INFO_NAME
-    if not path.is_file():
-        raise InputError(f"{path}: run record missing; the split check needs each run's recorded inputs")
-    try:
-        return json.loads(path.read_text())
-    except ValueError as error:
-        raise InputError(f"{path}: not valid JSON ({error})") from None
 
 
 def training_run(label: str, run_dir: Path) -> TrainingRun:

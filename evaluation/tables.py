@@ -67,7 +67,7 @@ from relightanyone.model.fit.avatar import check_pinhole_cameras, decoded_avatar
 from relightanyone.model.fit.fitter import FitSettings, Fitter, load_relightable_model
 from relightanyone.model.fit.views import FitViews, load_fit_views
 from relightanyone.model.train.budget import two_stage_budget
-from relightanyone.model.train.run_files import RUN_INFO_NAME
+from relightanyone.model.train.run_files import read_run_info
 from relightanyone.render.lights import PointLights
 
 # true_image(dataset, subject, camera, light) -> (image (H, W, 3), mask (H, W)) in the row's geometry.
@@ -650,9 +650,7 @@ class Evaluation:
         return [run.label for run in runs_that_trained(key, self.training_runs)]
 
     def _stage1_dataset_names(self) -> list[str]:
-        import json
-
-        info = json.loads((Path(self.inputs.stage1) / RUN_INFO_NAME).read_text())
+        info = read_run_info(self.inputs.stage1)
         return [d["name"] for d in info["datasets"]]
 
     def run(self) -> dict:

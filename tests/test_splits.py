@@ -92,7 +92,7 @@ def test_recorded_views_of_old_and_new_runs(tmp_path):
     # A stage-2 run without trained_views lists stage 1's codes but trains on its own dataset only.
     old = {"stage": "stage2", "dataset": {"name": "olat"}, "subjects": ["olat/a", "flat/b"]}
     assert recorded_views(old) == {"olat/a": []}
-    with pytest.raises(InputError, match="run record missing"):
+    with pytest.raises(InputError, match="nowhere/run.json: not a training run folder"):
         training_run("stage 2", tmp_path / "nowhere")
 
 

@@ -54,7 +54,7 @@ from relightanyone.model.train.losses import (
     weighted_sum,
 )
 from relightanyone.model.train.run import load_run
-from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
+from relightanyone.model.train.run_files import CHECKPOINT_NAME, read_run_info
 from relightanyone.model.train.sampling import iteration_generator
 from relightanyone.progress import progress_bar
 from relightanyone.render.lights import PointLights, full_on_rig_from_table, olat_rig_from_table
@@ -136,15 +136,8 @@ def load_relightable_model(
     stage1_run: Path, stage2_run: Path, device: torch.device | str = "cpu"
 ) -> RelightableModel:
     """Load a stage-1 run and the stage-2 run trained on it (not a single-stage baseline run), on ``device``."""
-    import json
-
     stage2_run = Path(stage2_run)
-    info_path = stage2_run / RUN_INFO_NAME
-    if not info_path.is_file():
-        raise FileNotFoundError(
-            f"{info_path}: not a stage-2 run folder (train one with `relightanyone train stage2`)"
-        )
-    info = json.loads(info_path.read_text())
+    info = read_run_info(stage2_run)
     checkpoint = load_checkpoint(stage2_run / CHECKPOINT_NAME)
     if checkpoint.get("single_stage"):
         raise InputError(

@@ -7,12 +7,11 @@ equal budgets, so the single-stage baseline can be given the total of a two-stag
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 from relightanyone.errors import InputError
-from relightanyone.model.train.run_files import RUN_INFO_NAME
+from relightanyone.model.train.run_files import RUN_INFO_NAME, read_run_info
 
 
 def run_budget(run: Path) -> dict:
@@ -21,9 +20,7 @@ def run_budget(run: Path) -> dict:
     samples = iterations × batch_size × processes: the views the run trained on.
     """
     path = Path(run) / RUN_INFO_NAME
-    if not path.is_file():
-        raise InputError(f"{path}: not a training run (no {RUN_INFO_NAME}); pass a run folder")
-    info = json.loads(path.read_text())
+    info = read_run_info(run)
     try:
         iterations = int(info["preset"]["iterations"])
         batch_size = int(info["preset"]["batch_size"])

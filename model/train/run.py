@@ -23,7 +23,7 @@ from relightanyone.model.networks.presets import Stage1Preset
 from relightanyone.model.networks.render import grid, orbit_cameras, render_views, save_png
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.train.checkpoint import load_checkpoint
-from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
+from relightanyone.model.train.run_files import CHECKPOINT_NAME, read_run_info
 from relightanyone.progress import progress_bar
 
 FOREGROUND_ALPHA = 0.5
@@ -67,12 +67,7 @@ def load_run(run_dir: Path, device: torch.device | str = "cpu") -> Stage1Run:
     """Rebuild the model of ``run_dir`` from its checkpoint, run.json and template copy, on ``device``."""
 
     run_dir = Path(run_dir)
-    info_path = run_dir / RUN_INFO_NAME
-    if not info_path.is_file():
-        raise FileNotFoundError(
-            f"{info_path}: not a stage-1 run folder (train one with `relightanyone train stage1`)"
-        )
-    info = json.loads(info_path.read_text())
+    info = read_run_info(run_dir)
     checkpoint = load_checkpoint(run_dir / CHECKPOINT_NAME)
     preset = Stage1Preset.from_json(checkpoint["preset"])
     template_vertices, binding = load_template_binding(run_dir / TEMPLATE_NAME, preset.uv_size)

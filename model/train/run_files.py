@@ -9,11 +9,40 @@ it trains with, copied from its dataset under the dataset's name for it
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterable
+from pathlib import Path
+
+from relightanyone.errors import InputError
 
 CHECKPOINT_NAME = "checkpoint.pt"
 RUN_INFO_NAME = "run.json"
 METRICS_NAME = "metrics.json"
+
+
+def read_run_info(run: Path | str, stage: str | None = None) -> dict:
+    """The ``run.json`` of the training run folder ``run``; with ``stage`` ("stage1", "stage2",
+    "single-stage", ...), checked to record that stage. InputError naming the file when it is missing,
+    not a JSON object, or of another stage."""
+    path = Path(run) / RUN_INFO_NAME
+    command = f"relightanyone train {stage}" if stage in ("stage1", "stage2") else "relightanyone train"
+    if not path.is_file():
+        raise InputError(
+            f"{path}: not a training run folder (no {RUN_INFO_NAME}); train one with `{command}`"
+        )
+    try:
+        info = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as error:
+        raise InputError(f"{path}: not valid JSON ({error})") from None
+    if not isinstance(info, dict):
+        raise InputError(f"{path}: not a JSON object; the run folder is damaged, train it again")
+    if stage is not None and info.get("stage") != stage:
+        raise InputError(
+            f"{path}: field 'stage' is {info.get('stage')!r}, expected {stage!r}; pass a {stage} run here"
+        )
+    return info
+
+
 TRAINED_VIEWS_KEY = "trained_views"  # run.json: {"<dataset>/<subject>": [cameras whose rows trained]}
 
 

@@ -3,36 +3,18 @@ provenance of the expanded dataset."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from relightanyone.errors import InputError
 from relightanyone.format.schema import Provenance
 from relightanyone.hashing import sha256_file
 from relightanyone.model.train.checkpoint import load_checkpoint
-from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME
+from relightanyone.model.train.run_files import CHECKPOINT_NAME, RUN_INFO_NAME, read_run_info
 from relightanyone.pipelines.expand.task import cache_relightable_model
 
 
-def run_info(run: Path, stage: str) -> dict:
-    """``run.json`` of a training run, checked to be of ``stage`` ("stage1" or "stage2")."""
-    path = Path(run) / RUN_INFO_NAME
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"{path}: not a {stage} run folder (train one with `relightanyone train {stage}`)"
-        )
-    try:
-        info = json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise InputError(f"{path}: not valid JSON ({error})") from None
-    if not isinstance(info, dict) or info.get("stage") != stage:
-        found = info.get("stage") if isinstance(info, dict) else None
-        raise InputError(f"{path}: field 'stage' is {found!r}, expected {stage!r}; pass a {stage} run here")
-    return info
-
-
 def stage2_olat_dataset(stage2: Path) -> Path:
-    info = run_info(stage2, "stage2")
+    info = read_run_info(stage2, "stage2")
     try:
         return Path(info["dataset"]["path"])
     except (KeyError, TypeError) as error:

@@ -39,12 +39,12 @@ from relightanyone.format.shards import ShardWriter
 from relightanyone.hashing import sha256_file
 from relightanyone.model.device import resolve_device
 from relightanyone.model.fit.fitter import FitSettings
+from relightanyone.model.train.run_files import read_run_info
 from relightanyone.parallel import Executor, TaskResources
 from relightanyone.pipelines.expand.inputs import (
     checkpoint_sha256,
     dataset_provenance,
     load_model_early,
-    run_info,
     stage2_olat_dataset,
 )
 from relightanyone.pipelines.expand.render import envmap_pattern
@@ -196,7 +196,7 @@ def plan_expansion(
         "olat_lights_sha256": sha256_file(olat_dir / LIGHTS_NAME),
         "envmaps_sha256": {envmap_pattern(p): sha256_file(p) for p in envmaps},
     }
-    run_info(stage1, "stage1")
+    read_run_info(stage1, "stage1")
     stage1_subjects = load_model_early(stage1, stage2)
 
     index = source_data.index
