@@ -22,7 +22,7 @@ from relightanyone.evaluation.splits import (
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.ingest.records import published_splits
 from relightanyone.model.train.data import Stage1Data
-from relightanyone.model.train.run_files import RUN_INFO_NAME
+from relightanyone.model.train.run_files import RUN_INFO_NAME, read_run_info
 from relightanyone.pipelines.dag.pipeline_file import parse_pipeline
 
 REPO = Path(__file__).resolve().parents[1]
@@ -171,3 +171,15 @@ def test_every_run_an_evaluation_uses_is_checked(tmp_path):
     assert [r.label for r in runs] == ["stage 1", "stage 2", "no-zl stage 1", "colour warm-up"]
     with pytest.raises(InputError, match="flat/w reached training in the colour warm-up run"):
         refuse_trained_subjects("test", ["flat/w"], runs)
+
+
+def test_a_run_record_that_is_missing_damaged_or_of_another_stage_is_named(tmp_path):
+    with pytest.raises(InputError, match="run.json: not a training run folder.*relightanyone train stage2"):
+        read_run_info(tmp_path, "stage2")
+    (tmp_path / "run.json").write_text('{"stage": "stage1"')
+    with pytest.raises(InputError, match="run.json: not valid JSON"):
+        read_run_info(tmp_path)
+    (tmp_path / "run.json").write_text('{"stage": "stage1"}')
+    with pytest.raises(InputError, match="field 'stage' is 'stage1', expected 'stage2'"):
+        read_run_info(tmp_path, "stage2")
+    assert read_run_info(tmp_path, "stage1") == {"stage": "stage1"}

@@ -20,6 +20,9 @@ RUN_INFO_NAME = "run.json"
 METRICS_NAME = "metrics.json"
 
 
+TRAINED_VIEWS_KEY = "trained_views"  # run.json: {"<dataset>/<subject>": [cameras whose rows trained]}
+
+
 def read_run_info(run: Path | str, stage: str | None = None) -> dict:
     """The ``run.json`` of the training run folder ``run``; with ``stage`` ("stage1", "stage2",
     "single-stage", ...), checked to record that stage. InputError naming the file when it is missing,
@@ -32,7 +35,7 @@ def read_run_info(run: Path | str, stage: str | None = None) -> dict:
         )
     try:
         info = json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError) as error:
+    except ValueError as error:  # UnicodeDecodeError too
         raise InputError(f"{path}: not valid JSON ({error})") from None
     if not isinstance(info, dict):
         raise InputError(f"{path}: not a JSON object; the run folder is damaged, train it again")
@@ -41,9 +44,6 @@ def read_run_info(run: Path | str, stage: str | None = None) -> dict:
             f"{path}: field 'stage' is {info.get('stage')!r}, expected {stage!r}; pass a {stage} run here"
         )
     return info
-
-
-TRAINED_VIEWS_KEY = "trained_views"  # run.json: {"<dataset>/<subject>": [cameras whose rows trained]}
 
 
 def trained_views(views: Iterable[tuple[str, str]]) -> dict[str, list[str]]:
