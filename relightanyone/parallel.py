@@ -56,6 +56,7 @@ from relightanyone.errors import DependencyError, InputError
 
 EXECUTORS = ("local", "ray")
 PR_SET_PDEATHSIG = 1  # prctl(2) option: the signal this process gets when its parent dies
+_local_ray_started = False  # this process has started a local Ray (it can no longer join a cluster)
 
 
 @dataclass(frozen=True)
@@ -147,6 +148,7 @@ class Executor:
         return thread
 
     def _ray(self):
+        global _local_ray_started
         try:
             import ray
         except ImportError:
@@ -162,16 +164,8 @@ class Executor:
                     f"{arguments['address']}: run the job from a new process (restart the interpreter)"
                 )
             ray.init(**arguments)
-            _mark_local_ray(not joins_cluster)
+            _local_ray_started = _local_ray_started or not joins_cluster
         return ray
-
-
-_local_ray_started = False
-
-
-def _mark_local_ray(started: bool) -> None:
-    global _local_ray_started
-    _local_ray_started = _local_ray_started or started
 
 
 def cpu_share(workers: int, kind: str = "local") -> int:

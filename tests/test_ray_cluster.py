@@ -49,10 +49,8 @@ ray.shutdown()
 def run_driver(code: str, *arguments: str, ray_address: str | None = None) -> dict:
     """Run ``code`` in a fresh Python (tests/ on its path, ``RAY_ADDRESS`` as given, one torch thread)
     and return the JSON object on its last output line."""
-    environment = {
-        **os.environ,
-        "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
-    }
+    search_path = [str(TESTS), *filter(None, [os.environ.get("PYTHONPATH")])]
+    environment = {**os.environ, "PYTHONPATH": os.pathsep.join(search_path)}
     environment.pop("RAY_ADDRESS", None)
     if ray_address is not None:
         environment["RAY_ADDRESS"] = ray_address
