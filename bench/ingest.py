@@ -56,10 +56,11 @@ END_TO_END_REPEATS = 3
 def ensure_world(world: Path) -> None:
     if (world / "world.json").is_file():
         return
+    from relightanyone.progress import progress_bar
     from relightanyone.synth.world import generate_world
 
     print(f"generating the demo world (Ava-256 only) into {world} ...", flush=True)
-    generate_world(world, "demo", seed=0, datasets=("d2",), progress=True, overwrite=True)
+    generate_world(world, "demo", seed=0, datasets=("d2",), progress=progress_bar, overwrite=True)
 
 
 def ensure_full_size_world(world: Path) -> None:
@@ -68,6 +69,7 @@ def ensure_full_size_world(world: Path) -> None:
         return
     import dataclasses
 
+    from relightanyone.progress import progress_bar
     from relightanyone.synth.presets import PRESETS, DatasetSize
     from relightanyone.synth.world import generate_world
 
@@ -78,7 +80,7 @@ def ensure_full_size_world(world: Path) -> None:
         PRESETS["demo"], name="demo-ava256-full-size", answer_lights=2, envmap_count=1, d2=size
     )
     print(f"generating the full-size Ava-256 world into {world} ...", flush=True)
-    generate_world(world, preset, seed=0, datasets=("d2",), progress=True, overwrite=True, workers=2)
+    generate_world(world, preset, seed=0, datasets=("d2",), progress=progress_bar, overwrite=True, workers=2)
 
 
 def mask_methods(world: Path, sizes=(128, 512, 1024), repeats: int = 5) -> dict:

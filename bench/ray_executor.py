@@ -36,10 +36,11 @@ GOAL_TWO_OVER_ONE = 1.7
 def ensure_world(world: Path, preset: str) -> None:
     if (world / "world.json").is_file():
         return
+    from relightanyone.progress import progress_bar
     from relightanyone.synth.world import generate_world
 
     print(f"generating the {preset} world (Ava-256 only) into {world} ...", flush=True)
-    generate_world(world, preset, seed=0, datasets=("d2",), progress=True, overwrite=True, workers=2)
+    generate_world(world, preset, seed=0, datasets=("d2",), progress=progress_bar, overwrite=True, workers=2)
 
 
 def ingest_through(address: str, plan, world: Path, out: Path, workers: int) -> dict:
