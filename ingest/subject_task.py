@@ -16,7 +16,7 @@ import numpy as np
 
 from relightanyone.align.geometry import transform_points, w2c_to_canonical
 from relightanyone.format.codecs import encode_image, encode_mask
-from relightanyone.format.schema import MeshRow, QuarantineEntry, build_image_row
+from relightanyone.format.schema import ImageRow, MeshRow, QuarantineEntry, build_image_row
 from relightanyone.ingest.checks import Finding, ImageCheck, view_item
 from relightanyone.ingest.decode import (
     DecodeError,
@@ -39,6 +39,10 @@ from relightanyone.ingest.tracking import (
     load_template,
 )
 from relightanyone.render.mesh import read_obj_vertices
+
+# Bytes of encoded rows a task keeps for the views the image check holds back (per task, so per worker):
+# about 170 rows of 512² or 40 of 1024²; views past it are decoded again when released.
+HELD_ROWS_BYTES = 256 * 2**20
 
 
 @dataclass(frozen=True)
@@ -190,40 +194,19 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
         decoder.prefetch_videos(v.image for v in views if v.frame in meshes)
         seen: set[str] = set()
         image_check = ImageCheck(task, {f: m.silhouette for f, m in meshes.items()}, settings.accepted_checks)
-        for view in image_check.passes(views, decoder.prefetch_videos):
-            item = f"{plan.subject}/{view.frame:06d}/{view.camera.name}/{view.pattern}"
-            if view.frame not in meshes:
-                refuse(part, item, view.source, task.failures.get(view.frame, "no tracked mesh"), "align")
-                continue
-            if item in task.refused_views:
-                refuse(part, item, view.source, task.refused_views[item], "check")
-                continue
-            if item in seen:
-                refuse(part, item, view.source, f"a second image for {item} (first one kept)", "plan")
-                continue
-            try:
-                image, sha256 = decoder.decode(view.image)
-                alpha = decoder.decode_alpha(view.alpha) if view.alpha is not None else None
-            except DecodeError as error:
-                refuse(part, item, view.source, str(error), "decode")
-                continue
-            if image_check.holds(view, item, image):
-                continue
-            try:
-                image = apply_colour_calibration(image, view.colour)
-                out, mask, valid, K, w2c, box = normalize_view(
-                    view,
-                    image,
-                    alpha,
-                    task.alignments[view.frame],
-                    meshes[view.frame],
-                    settings.out_size,
-                    settings.margin,
-                )
-            except (ValueError, AlignmentError) as error:
-                refuse(part, item, view.source, f"{view.image.label}: {error}", "normalize")
-                continue
-            row = build_image_row(
+
+        def normalized_row(view: SourceView, image: np.ndarray, alpha, sha256: str) -> ImageRow:
+            image = apply_colour_calibration(image, view.colour)
+            out, mask, valid, K, w2c, box = normalize_view(
+                view,
+                image,
+                alpha,
+                task.alignments[view.frame],
+                meshes[view.frame],
+                settings.out_size,
+                settings.margin,
+            )
+            return build_image_row(
                 dataset=settings.dataset,
                 subject=plan.subject,
                 frame=view.frame,
@@ -243,6 +226,43 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
                 colour_matrix=view.colour.applied_matrix(),
                 valid=valid,
             )
+
+        # Rows of views the image check holds back, kept (up to HELD_ROWS_BYTES) so that a view it
+        # releases is written without decoding its image again; the others are decoded again.
+        held_rows: dict[str, ImageRow] = {}
+        held_bytes = 0
+        for view in image_check.passes(views, decoder.prefetch_videos):
+            item = f"{plan.subject}/{view.frame:06d}/{view.camera.name}/{view.pattern}"
+            if view.frame not in meshes:
+                refuse(part, item, view.source, task.failures.get(view.frame, "no tracked mesh"), "align")
+                continue
+            if item in task.refused_views:
+                refuse(part, item, view.source, task.refused_views[item], "check")
+                continue
+            if item in seen:
+                refuse(part, item, view.source, f"a second image for {item} (first one kept)", "plan")
+                continue
+            row = held_rows.pop(item, None)
+            if row is None:
+                try:
+                    image, sha256 = decoder.decode(view.image)
+                    alpha = decoder.decode_alpha(view.alpha) if view.alpha is not None else None
+                except DecodeError as error:
+                    refuse(part, item, view.source, str(error), "decode")
+                    continue
+                held = image_check.holds(view, item, image)
+                try:
+                    row = normalized_row(view, image, alpha, sha256)
+                except (ValueError, AlignmentError) as error:
+                    if not held:
+                        refuse(part, item, view.source, f"{view.image.label}: {error}", "normalize")
+                    continue  # a held view that is released is decoded again and refused here then
+                if held:
+                    size = len(row.image) + len(row.mask) + len(row.valid)
+                    if held_bytes + size <= HELD_ROWS_BYTES:
+                        held_rows[item] = row
+                        held_bytes += size
+                    continue
             part.add(row)
             seen.add(item)
             result.rows += 1

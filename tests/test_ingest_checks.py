@@ -29,6 +29,7 @@ from relightanyone.ingest.checks import (
     mismatched_frames,
     surround_findings,
 )
+from relightanyone.ingest.decode import TaskDecoder
 from relightanyone.render.mesh import read_obj
 from relightanyone.synth.capture import look_at_w2c
 from relightanyone.synth.presets import DatasetSize
@@ -222,7 +223,7 @@ def test_mesh_of_another_pose_quarantines_the_frame(capture, tmp_path):
     assert all("mesh of another frame or head pose" in e["reason"] for e in refused)
 
 
-def test_view_partly_off_its_foreground_in_a_good_frame_is_written_after_all(capture, tmp_path):
+def test_view_partly_off_its_foreground_in_a_good_frame_is_written_after_all(capture, tmp_path, monkeypatch):
     """A view held back as doubtful (part of the head dark, as under black hair) is released when its
     frame agrees with the subject's other frames."""
     path = capture / "images" / "s1" / "000001" / "c2.png"
@@ -230,10 +231,23 @@ def test_view_partly_off_its_foreground_in_a_good_frame_is_written_after_all(cap
     rows = np.flatnonzero(image.max(axis=(1, 2)) > 0)
     image[rows[0] : rows[0] + (rows[-1] - rows[0]) // 8] = 0
     cv2.imwrite(str(path), image)
+    decoded: list[str] = []
+    decode = TaskDecoder.decode
+    monkeypatch.setattr(
+        TaskDecoder, "decode", lambda self, ref: decoded.append(ref.label) or decode(self, ref)
+    )
     result = ingest_custom(capture, tmp_path / "out")
     assert result.exit_code == 0, result.output
     assert quarantine(tmp_path / "out") == []
-    assert len(NormalizedDataset(tmp_path / "out" / "custom")) == 15
+    dataset = NormalizedDataset(tmp_path / "out" / "custom")
+    assert len(dataset) == 15
+    # The held view's row was kept, not decoded again, and is the row an ingest that holds nothing writes.
+    assert len(decoded) == len(set(decoded)) == 15, decoded
+    unheld = ingest_custom(capture, tmp_path / "unheld", "--accept-check", "silhouette")
+    assert unheld.exit_code == 0, unheld.output
+    key = next(k for k in dataset.keys if "/c2/" in k and "/000001/" in k)
+    unheld_row = NormalizedDataset(tmp_path / "unheld" / "custom").row(key)
+    assert dataset.row(key).to_arrow_dict() == unheld_row.to_arrow_dict()
 
 
 def test_head_half_in_black_shadow_passes_with_no_finding(capture, tmp_path):
