@@ -151,21 +151,38 @@ def crop_resize_intrinsics(K: Any, box: Any, out_size: int) -> np.ndarray:
 
 
 def _resample(
-    images: list[np.ndarray], K: np.ndarray, dist: np.ndarray, K_out: np.ndarray, size: int
-) -> list[np.ndarray]:
-    """One remap of each of ``images`` (the same source size) from the distorted source into the pinhole
-    camera ``K_out`` with a ``size²`` image; the map is built once for all of them."""
+    image: np.ndarray, K: np.ndarray, dist: np.ndarray, K_out: np.ndarray, size: int, with_taps: bool
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """One remap of ``image`` from the distorted source into the pinhole camera ``K_out`` with a ``size²``
+    image; with ``with_taps``, also ``(size, size)`` float32: 1 where every bilinear tap with a weight
+    lies inside the source (see :func:`_taps_inside`), else 0."""
     import cv2
 
     map_x, map_y = cv2.initUndistortRectifyMap(
         K, dist if dist.size else None, np.eye(3), K_out, (size, size), cv2.CV_32FC1
     )
-    return [
-        cv2.remap(
-            image, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
-        )
-        for image in images
-    ]
+    out = cv2.remap(
+        image, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+    )
+    if not with_taps:
+        return out, None
+    height, width = image.shape[:2]
+    return out, _taps_inside(map_x, map_y, width, height)
+
+
+def _taps_inside(map_x: np.ndarray, map_y: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``(h, w)`` float32, 1 where a bilinear remap of a ``width × height`` source at ``(map_x, map_y)``
+    draws only on source pixels, else 0: what the same remap of an all-ones source gives exactly 1, without
+    the remap. OpenCV rounds each coordinate to 1/32 of a pixel (``X = round(32 x)``, half to even) and
+    reads the taps ``X // 32`` and ``X // 32 + 1``, the second with weight ``(X % 32) / 32``; so the taps
+    with a weight are inside exactly when ``0 <= X <= 32 (width - 1)``, that is when
+    ``-1/64 <= x <= width - 1 + 1/64`` (both ends round to the inside)."""
+    import cv2
+
+    margin = 1.0 / 64.0
+    inside_x = cv2.inRange(map_x, -margin, width - 1 + margin)
+    inside_y = cv2.inRange(map_y, -margin, height - 1 + margin)
+    return (cv2.bitwise_and(inside_x, inside_y) & 1).astype(np.float32)
 
 
 def _shifted_crop(image: np.ndarray, box: Any) -> np.ndarray:
@@ -215,9 +232,10 @@ def undistort_crop_resize_valid(
     whose value comes from the source alone, less than ``PADDING_WEIGHT_TOLERANCE`` of their resampling
     weight on the zero padding past the source's edge.
 
-    Exact for every path of the resampler, because an all-ones source goes through the same remap (the
-    same map) and the same area resize: a pixel is valid where that gives 1. A crop at least one pixel
-    inside the image of a camera without distortion (every bilinear tap inside) is all valid at once.
+    Exact for every path of the resampler: a pixel is valid where an all-ones source, through the same
+    remap (the same map) and the same area resize, gives 1. The remap's part is read off the map itself
+    (:func:`_taps_inside`) instead of remapping a second image. A crop at least one pixel inside the
+    image of a camera without distortion (every bilinear tap inside) is all valid at once.
     """
     return _undistort_crop_resize(image, K, dist, box, out_size, with_valid=True)
 
@@ -243,9 +261,6 @@ def _undistort_crop_resize(
     height, width = img.shape[:2]
     inside = not dist.any() and x0 >= 1 and y0 >= 1 and x1 <= width - 1 and y1 <= height - 1
     coverage = with_valid and not inside
-    # A source of 255s through the same remap stays 255 exactly where every bilinear tap is inside:
-    # OpenCV's bilinear weights are multiples of 1/32, so any weight outside takes at least 8 codes off.
-    full = [np.full((height, width), 255, np.uint8)] if coverage else []
     covered = None  # (out_size, out_size) float32: each output pixel's weight on the source
     # Integer images are resampled in float32 and rounded once, after the averaging.
     work = img if np.issubdtype(img.dtype, np.floating) else img.astype(np.float32)
@@ -256,15 +271,12 @@ def _undistort_crop_resize(
             if coverage:
                 covered = _sliced_coverage(box, width, height, out_size)
         else:
-            out, *taps = _resample([work, *full], K, dist, crop_resize_intrinsics(K, box, fine), fine)
+            out, taps = _resample(work, K, dist, crop_resize_intrinsics(K, box, fine), fine, coverage)
             out = cv2.resize(out, (out_size, out_size), interpolation=cv2.INTER_AREA)
             if coverage:
-                inside_taps = (taps[0] == 255).astype(np.float32)
-                covered = cv2.resize(inside_taps, (out_size, out_size), interpolation=cv2.INTER_AREA)
+                covered = cv2.resize(taps, (out_size, out_size), interpolation=cv2.INTER_AREA)
     else:
-        out, *taps = _resample([work, *full], K, dist, K_new, out_size)
-        if coverage:
-            covered = (taps[0] == 255).astype(np.float32)
+        out, covered = _resample(work, K, dist, K_new, out_size, coverage)
     if out.ndim == 2 and img.ndim == 3:
         out = out[:, :, None]  # OpenCV drops a single channel axis
     if np.issubdtype(img.dtype, np.integer):
