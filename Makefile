@@ -32,7 +32,7 @@ demo: $(VENV)/.stamp-dev
 # The reference evaluation: the demo pipeline on the `reference` world, every test subject scored.
 reference: $(VENV)/.stamp-dev
 	$(VENV)/bin/relightanyone run pipelines/demo.yaml --var out=$(REFERENCE_OUT) --var preset=reference \
-		--var eval_subjects=0
+		--var eval_subjects=0 --var single_stage_share=1
 
 bench: $(VENV)/.stamp-dev
 	$(PY) bench/loader.py

@@ -10,6 +10,7 @@ pure-Python functions (:mod:`relightanyone.model.fit.option_values`) before anyt
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import click
@@ -241,6 +242,14 @@ def train_stage1_command(
     help="Train as many views as these two runs together (iterations = their views / batch size); "
     "gives the single-stage baseline the two-stage model's budget. Replaces --iterations.",
 )
+@click.option(
+    "--match-share",
+    type=click.FloatRange(min=0.0, min_open=True, max=1.0),
+    default=1.0,
+    show_default=True,
+    help="With --match-budget: train this share of those runs' views (1: the same budget; a smoke run "
+    "may train less, and the evaluation shows every model's budget beside its numbers).",
+)
 @ITERATIONS_OPTION
 @BATCH_SIZE_OPTION
 @seed_option()
@@ -272,6 +281,7 @@ def train_stage2_command(
     single_stage,
     single_stage_loss,
     match_budget,
+    match_share,
     iterations,
     batch_size,
     seed,
@@ -300,14 +310,18 @@ def train_stage2_command(
 
     _set_threads(threads)
     chosen = with_overrides(get_stage2_preset(preset), iterations=iterations, batch_size=batch_size)
+    if match_share != 1.0 and match_budget is None:
+        raise click.UsageError("--match-share needs --match-budget STAGE1_RUN STAGE2_RUN")
     if match_budget is not None:
         if iterations is not None:
             raise click.UsageError("give --iterations or --match-budget, not both")
         budget = two_stage_budget(*match_budget)
-        chosen = chosen.replace(iterations=matched_iterations(budget["samples"], chosen.batch_size))
+        views = math.ceil(budget["samples"] * match_share)
+        chosen = chosen.replace(iterations=matched_iterations(views, chosen.batch_size))
+        share = "" if match_share == 1.0 else f" × {match_share:g} = {views} views"
         click.echo(
-            f"matching the budget of {match_budget[0]} + {match_budget[1]}: {budget['samples']} views = "
-            f"{chosen.iterations} iterations of {chosen.batch_size}"
+            f"matching the budget of {match_budget[0]} + {match_budget[1]}: {budget['samples']} views"
+            f"{share} = {chosen.iterations} iterations of {chosen.batch_size}"
         )
     config = Stage2Config(
         data=data,

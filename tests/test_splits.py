@@ -80,6 +80,28 @@ def test_the_demo_pipeline_ingests_every_dataset_with_the_worlds_protocol():
             assert stage.args[stage.args.index("--split") + 1] == "test", stage.name
 
 
+def test_the_reference_baseline_trains_the_two_stage_budget_with_both_losses():
+    """`make reference` gives the single-stage baseline the two-stage model's whole budget, once per
+    loss, and the evaluation chooses between the two on validation subjects."""
+    assert "--var single_stage_share=1" in (REPO / "Makefile").read_text()
+    pipeline = parse_pipeline(
+        REPO / "pipelines" / "demo.yaml", {"out": "/tmp/ref", "single_stage_share": "1"}
+    )
+    stages = {stage.name: stage for stage in pipeline.stages}
+    runs = {name: stages[name].output for name in ("stage1", "stage2", "single-stage", "single-stage-masked")}
+    losses = set()
+    for name in ("single-stage", "single-stage-masked"):
+        args = stages[name].args
+        match = args.index("--match-budget")
+        assert list(args[match + 1 : match + 3]) == [str(runs["stage1"]), str(runs["stage2"])], name
+        assert args[args.index("--match-share") + 1] == "1" and "--iterations" not in args, name
+        losses.add(args[args.index("--single-stage-loss") + 1])
+    assert losses == {"background", "masked"}
+    evaluate = stages["evaluate"].args
+    candidates = [evaluate[i + 1] for i, arg in enumerate(evaluate) if arg == "--single-stage"]
+    assert candidates == [str(runs["single-stage"]), str(runs["single-stage-masked"])]
+
+
 def write_run(folder: Path, info: dict) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / RUN_INFO_NAME).write_text(json.dumps(info))

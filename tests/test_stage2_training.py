@@ -283,6 +283,14 @@ def test_single_stage_matches_a_two_stage_budget_with_either_loss(olat_world, tm
     assert budget["iterations"] == -(-views // 3) and budget["samples"] >= views > budget["samples"] - 3
     info = json.loads((out / "run.json").read_text())
     assert info["single_stage_loss"] == "masked"
+    # A share of that budget (a smoke run), and a share without a budget to take it of.
+    half = tmp_path / "half"
+    shared = [*single[:-1], str(half), "--match-budget", str(run), str(stage2), "--match-share", "0.5"]
+    result = runner.invoke(cli, shared)
+    assert result.exit_code == 0, result.output
+    assert run_budget(half)["iterations"] == -(-(-(-views // 2)) // 3)
+    alone = runner.invoke(cli, [*single[:-1], str(tmp_path / "alone"), "--match-share", "0.5"])
+    assert alone.exit_code != 0 and "--match-share needs --match-budget" in alone.output
     losses = {}
     for variant in ("background", "masked"):
         config = Stage2Config(
