@@ -112,7 +112,9 @@ PRESETS: dict[str, Preset] = {
             supersampling=1,
             answer_lights=16,
             envmap_count=2,
-            d1=DatasetSize(train_subjects=3, test_subjects=1, cameras=8, image_size=(128, 192), lights=16),
+            d1=DatasetSize(
+                train_subjects=3, test_subjects=1, val_subjects=1, cameras=8, image_size=(128, 192), lights=16
+            ),
             d2=DatasetSize(
                 train_subjects=3, test_subjects=1, cameras=12, image_size=(104, 160), frames=2, lights=24
             ),
