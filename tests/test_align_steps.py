@@ -328,7 +328,9 @@ def test_undistorted_crop_is_sliced_with_the_values_a_remap_gives():
     ]:
         side = box[2] - box[0]
         out, K_new = undistort_crop_resize(image, K_SRC, None, box, 64)
-        (remapped,) = _resample([image], K_SRC, np.zeros(0), crop_resize_intrinsics(K_SRC, box, side), side)
+        remapped, _ = _resample(
+            image, K_SRC, np.zeros(0), crop_resize_intrinsics(K_SRC, box, side), side, False
+        )
         expected = cv2.resize(remapped, (64, 64), interpolation=cv2.INTER_AREA)
         assert np.abs(out - expected).max() < 1e-5
         assert np.allclose(K_new, crop_resize_intrinsics(K_SRC, box, 64))
