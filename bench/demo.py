@@ -67,7 +67,8 @@ def model_results(out: Path) -> dict:
         }
     evaluation = out / "evaluation" / "evaluation.json"
     if evaluation.is_file():
-        shutil.copyfile(evaluation, RESULTS.parent / "evaluation.json")
+        # Paths below the checkout are recorded relative to it, as every committed result is.
+        (RESULTS.parent / "evaluation.json").write_text(evaluation.read_text().replace(f"{ROOT}/", ""))
         found["evaluation"] = "bench/results/evaluation.json"
     return found
 

@@ -54,6 +54,12 @@ BARE_PASSES = 3
 END_TO_END_REPEATS = 3
 
 
+def repo_relative(path: Path) -> str:
+    """``path`` as the results record it: relative to the checkout when inside it."""
+    path = path.resolve()
+    return str(path.relative_to(REPO)) if path.is_relative_to(REPO) else str(path)
+
+
 def ensure_world(world: Path) -> None:
     if (world / "world.json").is_file():
         return
@@ -146,7 +152,12 @@ def full_size(world: Path, presets: tuple[str, ...] = FULL_SIZE_PRESETS) -> dict
         }
         runs[preset]["checks"] = checks_cost(plan, world, preset)
         print(f"full size, {preset} crops: ratio {runs[preset]['end_to_end_over_bare_loop']}", flush=True)
-    return {"world": str(world), "source_size": [667, 1024], "views": plan.view_count, "presets": runs}
+    return {
+        "world": repo_relative(world),
+        "source_size": [667, 1024],
+        "views": plan.view_count,
+        "presets": runs,
+    }
 
 
 def make_plan(world: Path, subjects: int | None = None):
@@ -443,7 +454,7 @@ def main() -> None:
     result = {
         "benchmark": "ingest throughput (Ava-256 layout of the demo world)",
         "world": {
-            "path": str(args.world),
+            "path": repo_relative(args.world),
             "preset": PRESET,
             "subjects": subjects,
             "views": plan.view_count,
