@@ -16,7 +16,7 @@ import json
 import os
 import warnings
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +30,8 @@ with warnings.catch_warnings():
     import colour
 
 COLOUR_ALIGNMENT_FORMAT = "relightanyone.colour_alignment"
-COLOUR_ALIGNMENT_VERSION = 1
+COLOUR_ALIGNMENT_VERSION = 2  # 2 adds per-camera matrices; version 1 documents are still read
+READABLE_COLOUR_ALIGNMENT_VERSIONS = (1, 2)
 
 FACEOLAT_DISPLAY_GAMMA = 2.2
 
@@ -464,18 +465,40 @@ def ccm_error(measured: Any, reference: Any, M: Any, offset: Any = None) -> Colo
 # ---------------------------------------------------------------------------------------------------------
 
 
-def colour_alignment_text(M: Any, info: Mapping[str, Any] | None = None) -> str:
-    """The learned per-dataset 3×3 as its JSON document, keys sorted so the same inputs give the same bytes.
+@dataclass(frozen=True)
+class LearnedColour:
+    """A dataset's learned colour alignment, ``aligned = M @ rgb``: one matrix for the whole dataset and,
+    for the cameras whose own colour response was fitted, one per camera (a rig's cameras differ)."""
 
-    The matrix maps the dataset's linear RGB into the shared colour space: ``aligned = M @ rgb``.
+    matrix: np.ndarray  # (3, 3), for cameras without their own
+    cameras: Mapping[str, np.ndarray] = field(default_factory=dict)  # camera name -> (3, 3)
+
+    def for_camera(self, camera: str) -> np.ndarray:
+        """The (3, 3) matrix that aligns ``camera``'s images."""
+        return self.cameras.get(camera, self.matrix)
+
+
+def colour_alignment_text(
+    M: Any, info: Mapping[str, Any] | None = None, cameras: Mapping[str, Any] | None = None
+) -> str:
+    """The learned alignment as its JSON document, keys sorted so the same inputs give the same bytes.
+
+    ``M`` maps the dataset's linear RGB into the shared colour space, ``aligned = M @ rgb``; ``cameras``
+    (name -> 3×3) does the same for the cameras fitted one by one, which then use theirs instead.
     ``info`` is free-form JSON (e.g. reference dataset, training step, residual).
     """
     M = _as_matrix(M, (3, 3), "learned colour matrix")
+    per_camera = {
+        str(name): _as_matrix(matrix, (3, 3), f"learned colour matrix of camera {name!r}")
+        for name, matrix in (cameras or {}).items()
+    }
     document = {
         "format": COLOUR_ALIGNMENT_FORMAT,
         "version": COLOUR_ALIGNMENT_VERSION,
-        "convention": "aligned_linear_rgb = matrix @ dataset_linear_rgb (column vectors)",
+        "convention": "aligned_linear_rgb = matrix @ dataset_linear_rgb (column vectors); a camera listed "
+        "in 'cameras' uses its own matrix",
         "matrix": [[float(v) for v in row] for row in M],
+        "cameras": {name: [[float(v) for v in row] for row in m] for name, m in per_camera.items()},
         "info": dict(info or {}),
     }
     try:
@@ -484,9 +507,18 @@ def colour_alignment_text(M: Any, info: Mapping[str, Any] | None = None) -> str:
         raise ValueError(f"colour alignment info must be finite, JSON-serialisable values ({exc})") from exc
 
 
-def parse_colour_alignment(data: bytes, where: str) -> np.ndarray:
-    """``M (3, 3)`` float64 of a colour-alignment document; FileFormatError naming ``where`` when the document is
-    not valid JSON, has another ``format`` or ``version``, or its ``matrix`` is not a finite 3×3."""
+def _document_matrix(value: Any, where: str, field_name: str) -> np.ndarray:
+    try:
+        matrix = _as_matrix(value, (3, 3), f"field {field_name}")
+    except (TypeError, ValueError) as exc:
+        raise FileFormatError(f"{where}: {exc}") from exc
+    return check_colour_matrix(matrix, f"{where}: field {field_name}")
+
+
+def parse_colour_alignment(data: bytes, where: str) -> LearnedColour:
+    """The :class:`LearnedColour` of a colour-alignment document; FileFormatError naming ``where`` when the
+    document is not valid JSON, has another ``format`` or ``version``, or a matrix (``matrix``, each of
+    ``cameras``) is not a finite, invertible 3×3."""
     try:
         document = json.loads(data)
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -495,13 +527,16 @@ def parse_colour_alignment(data: bytes, where: str) -> np.ndarray:
         ) from exc
     if not isinstance(document, dict) or document.get("format") != COLOUR_ALIGNMENT_FORMAT:
         raise FileFormatError(f"{where}: field 'format' must be {COLOUR_ALIGNMENT_FORMAT!r}")
-    if document.get("version") != COLOUR_ALIGNMENT_VERSION:
+    if document.get("version") not in READABLE_COLOUR_ALIGNMENT_VERSIONS:
         raise FileFormatError(
             f"{where}: unsupported version {document.get('version')!r} (this toolkit reads "
-            f"{COLOUR_ALIGNMENT_VERSION})"
+            f"{', '.join(map(str, READABLE_COLOUR_ALIGNMENT_VERSIONS))})"
         )
-    try:
-        matrix = _as_matrix(document.get("matrix"), (3, 3), "field 'matrix'")
-    except (TypeError, ValueError) as exc:
-        raise FileFormatError(f"{where}: {exc}") from exc
-    return check_colour_matrix(matrix, f"{where}: field 'matrix'")
+    matrix = _document_matrix(document.get("matrix"), where, "'matrix'")
+    cameras = document.get("cameras", {})
+    if not isinstance(cameras, dict):
+        raise FileFormatError(f"{where}: field 'cameras' must map camera names to 3×3 matrices")
+    return LearnedColour(
+        matrix,
+        {str(name): _document_matrix(m, where, f"'cameras.{name}'") for name, m in cameras.items()},
+    )

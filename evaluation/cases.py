@@ -33,6 +33,7 @@ from relightanyone.evaluation.truth import (
 )
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.torch_dataset import LEARNED, NormalizedTorchDataset, image_hwc
+from relightanyone.model.metrics import interior_mask
 from relightanyone.render.camera import Cameras
 from relightanyone.render.lights import PointLights
 
@@ -226,8 +227,6 @@ def answer_masks(answers: WorldAnswers, frame: AnswerFrame) -> dict[str, np.ndar
     The row mask limits the comparison to what the datasets define as the subject (the head above the
     neck line), as Table 1's rows do: the model is trained to leave everything else empty.
     """
-    import cv2
-
     lights = len(answers.answer_lights().positions)
     masks = {}
     for camera, *_ in frame.rows:
@@ -235,7 +234,8 @@ def answer_masks(answers: WorldAnswers, frame: AnswerFrame) -> dict[str, np.ndar
         covered = (total.sum(axis=-1) > ANSWER_MASK_THRESHOLD).astype(np.float32)
         warped = _warp(frame, camera, covered[..., None])[..., 0]
         # Only pixels fully inside the subject: the warp blends edge pixels with the black background.
-        inside = cv2.erode((warped > 0.999).astype(np.float32), np.ones((3, 3), np.uint8))
+        covered_after_warp = torch.from_numpy((warped > 0.999).astype(np.float32))[None, None]
+        inside = interior_mask(covered_after_warp)[0, 0].numpy()
         row_mask = frame.row_masks.get(camera)
         masks[camera] = inside if row_mask is None else inside * (row_mask > 0.5)
     return masks

@@ -74,6 +74,18 @@ def _set_threads(threads: int | None) -> None:
     metavar="NAME",
     help="Dataset without colour calibration (repeatable): its 3x3 colour matrix is learned.",
 )
+@click.option(
+    "--per-camera",
+    multiple=True,
+    metavar="NAME",
+    help="Uncalibrated dataset whose cameras each get their own 3x3 after the warm-up (repeatable; "
+    "default: every --uncalibrated dataset).",
+)
+@click.option(
+    "--no-per-camera",
+    is_flag=True,
+    help="Learn only one 3x3 per uncalibrated dataset (the paper's alignment), no per-camera matrices.",
+)
 @MODEL_PRESET_OPTION
 @WARMUP_ITERATIONS_OPTION
 @seed_option()
@@ -82,9 +94,22 @@ def _set_threads(threads: int | None) -> None:
 @device_option()
 @out_option("Folder for the warm-up run and one dataset view per --data.")
 def align_colour_command(
-    data, uncalibrated, preset, warmup_iterations, seed, eval_views, threads, device, out
+    data,
+    uncalibrated,
+    per_camera,
+    no_per_camera,
+    preset,
+    warmup_iterations,
+    seed,
+    eval_views,
+    threads,
+    device,
+    out,
 ) -> None:
-    """Learn the colour matrix of uncalibrated datasets (warm-up without lighting codes, paper 4.1).
+    """Learn the colour matrices of uncalibrated datasets (warm-up without lighting codes, paper 4.1).
+
+    After the warm-up, every camera of an uncalibrated rig gets its own 3x3 from its training views
+    (a rig's cameras differ in colour response); a camera seen too little keeps its dataset's.
 
     Writes OUT/warmup/ (the warm-up run), OUT/<dataset>/ for every --data: a view of the dataset (links to
     its files; the source is not modified) carrying colour_alignment.json for the uncalibrated ones, and
@@ -98,8 +123,15 @@ def align_colour_command(
 
     _set_threads(threads)
     chosen = with_overrides(get_preset(preset), warmup_iterations=warmup_iterations)
-    report = align_colours(list(data), tuple(uncalibrated), chosen, out, seed, eval_views, device)
+    if no_per_camera and per_camera:
+        raise click.UsageError("--per-camera and --no-per-camera exclude each other")
+    chosen_per_camera = () if no_per_camera else (tuple(per_camera) or None)
+    report = align_colours(
+        list(data), tuple(uncalibrated), chosen, out, seed, eval_views, device, chosen_per_camera
+    )
     click.echo("colour matrices (render -> dataset): " + json.dumps(report.get("colour_matrices", {})))
+    for name, cameras in sorted(report.get("camera_matrices", {}).items()):
+        click.echo(f"{name}: {len(cameras)} camera(s) with their own matrix")
     click.echo(f"dataset views for stage 1: {', '.join(str(out / n) for n in report['datasets'])}")
 
 

@@ -29,6 +29,20 @@ def check_metric_inputs(prediction: torch.Tensor, target: torch.Tensor, mask: to
         )
 
 
+def interior_mask(mask: torch.Tensor) -> torch.Tensor:
+    """The pixels whose 3×3 neighbourhood lies wholly inside the binary mask (mask > 0.5): (B, 1, H, W) in,
+    (B, 1, H, W) float out.
+
+    A silhouette's edge pixels mix the subject with the background (anti-aliasing, matting), and against a
+    bright studio wall one such ring outweighs the whole face; metrics that score the subject read its
+    interior. Past the image border counts as inside (as OpenCV's erosion does): a crop's edge is not the
+    subject's.
+    """
+    outside = (mask <= 0.5).to(torch.float32)
+    grown = torch.nn.functional.max_pool2d(outside, kernel_size=3, stride=1, padding=1)
+    return (1.0 - grown).to(mask.dtype)
+
+
 def masked_mse(prediction: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Mean squared error over the masked pixels and channels of each image -> (B,)."""
     check_metric_inputs(prediction, target, mask)

@@ -26,7 +26,7 @@ from relightanyone.align.colour import (
     read_nersemble_v1_affine,
     srgb_to_linear,
 )
-from relightanyone.format.colour_alignment import read_learned_colour_matrix, write_learned_colour_matrix
+from relightanyone.format.colour_alignment import read_learned_colour, write_learned_colour_matrix
 from relightanyone.format.schema import COLOUR_ALIGNMENT_NAME
 
 CAST = np.array([[0.92, 0.11, 0.02], [0.04, 0.81, 0.09], [0.01, 0.14, 1.12]])
@@ -191,7 +191,7 @@ def test_every_colour_file_reader_refuses_a_singular_matrix_naming_the_file(tmp_
         json.dumps({"format": "relightanyone.colour_alignment", "version": 1, "matrix": matrix.tolist()})
     )
     with pytest.raises(ValueError, match=r"colour_alignment\.json: field 'matrix': .*singular"):
-        read_learned_colour_matrix(tmp_path)
+        read_learned_colour(tmp_path)
 
 
 # --- FaceOLAT real files ---------------------------------------------------------------------------------
@@ -271,15 +271,25 @@ def test_ccm_error_reports_a_known_delta_e():
 
 
 def test_learned_matrix_roundtrip_and_absence(tmp_path):
-    assert read_learned_colour_matrix(tmp_path) is None
+    assert read_learned_colour(tmp_path) is None
     path = write_learned_colour_matrix(tmp_path, CAST, {"reference_dataset": "faceolat", "step": 1200})
     assert path.name == COLOUR_ALIGNMENT_NAME
-    assert read_learned_colour_matrix(tmp_path) == pytest.approx(CAST, abs=0)
+    learned = read_learned_colour(tmp_path)
+    assert learned.matrix == pytest.approx(CAST, abs=0) and learned.for_camera("any") is learned.matrix
     first = path.read_bytes()
     write_learned_colour_matrix(tmp_path, CAST, {"step": 1200, "reference_dataset": "faceolat"})
     assert path.read_bytes() == first  # deterministic bytes
     document = json.loads(first)
-    assert document["info"]["reference_dataset"] == "faceolat" and document["version"] == 1
+    assert document["info"]["reference_dataset"] == "faceolat" and document["version"] == 2
+    # Per-camera matrices: a listed camera uses its own, the others the dataset's.
+    own = np.diag([1.2, 1.0, 0.8])
+    write_learned_colour_matrix(tmp_path, CAST, cameras={"400137": own})
+    learned = read_learned_colour(tmp_path)
+    assert learned.for_camera("400137") == pytest.approx(own, abs=0)
+    assert learned.for_camera("400163") == pytest.approx(CAST, abs=0)
+    # A version-1 document (no per-camera matrices) is still read.
+    path.write_text(json.dumps({"format": "relightanyone.colour_alignment", "version": 1, "matrix": CAST.tolist()}))
+    assert read_learned_colour(tmp_path).cameras == {}
 
 
 def test_learned_matrix_malformed_file_names_the_file(tmp_path):
@@ -288,9 +298,16 @@ def test_learned_matrix_malformed_file_names_the_file(tmp_path):
         json.dumps({"format": "relightanyone.colour_alignment", "version": 1, "matrix": [[1, 0]]})
     )
     with pytest.raises(ValueError, match="colour_alignment.json.*matrix"):
-        read_learned_colour_matrix(tmp_path)
+        read_learned_colour(tmp_path)
     path.write_text("[")
     with pytest.raises(ValueError, match="colour_alignment.json"):
-        read_learned_colour_matrix(tmp_path)
+        read_learned_colour(tmp_path)
+    singular = {"format": "relightanyone.colour_alignment", "version": 2, "matrix": CAST.tolist()}
+    path.write_text(json.dumps({**singular, "cameras": {"cam03": np.zeros((3, 3)).tolist()}}))
+    with pytest.raises(ValueError, match=r"colour_alignment\.json: field 'cameras\.cam03': .*singular"):
+        read_learned_colour(tmp_path)
+    path.write_text(json.dumps({**singular, "cameras": [1, 2]}))
+    with pytest.raises(ValueError, match="colour_alignment.json: field 'cameras'"):
+        read_learned_colour(tmp_path)
     with pytest.raises(ValueError, match="finite"):
         write_learned_colour_matrix(tmp_path, CAST, {"bad": float("nan")})

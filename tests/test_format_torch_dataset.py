@@ -103,6 +103,11 @@ def test_filters_select_rows_in_key_order_and_keys_keep_their_order(tmp_path):
         exact.column("width")
 
 
+def plain_image(rows: NormalizedTorchDataset, position: int) -> torch.Tensor:
+    row = rows.row(position)
+    return torch.from_numpy(decode_image(row.image, row.image_encoding)).permute(2, 0, 1)
+
+
 def test_colour_matrix_given_or_learned_is_applied_on_load(tmp_path):
     path = _write(tmp_path)
     swap = np.array([[0, 0, 1], [0, 1, 0], [2, 0, 0]], np.float32)
@@ -116,11 +121,20 @@ def test_colour_matrix_given_or_learned_is_applied_on_load(tmp_path):
     expected = torch.from_numpy(decode_image(row.image, row.image_encoding)).permute(2, 0, 1)
     assert torch.equal(a, expected)
     # "learned": the folder's colour_alignment.json when there is one, nothing otherwise.
-    assert NormalizedTorchDataset(path, colour_matrix="learned").colour_matrix is None
+    assert NormalizedTorchDataset(path, colour_matrix="learned").colour_matrix_of("cam01") is None
     write_learned_colour_matrix(path, swap)
     learned = NormalizedTorchDataset(path, cameras="cam01", colour_matrix="learned")
-    assert np.array_equal(learned.colour_matrix, swap) and torch.equal(learned[0]["image"], b)
+    assert np.array_equal(learned.colour_matrix_of("cam01"), swap) and torch.equal(learned[0]["image"], b)
     assert torch.equal(pickle.loads(pickle.dumps(learned))[0]["image"], b)
+    # A camera with its own matrix uses it; the others keep the dataset's.
+    write_learned_colour_matrix(path, np.eye(3), cameras={"cam01": swap})
+    per_camera = NormalizedTorchDataset(path, colour_matrix="learned")
+    for position in range(len(per_camera)):
+        item = per_camera[position]
+        plain_item = plain_image(per_camera, position)
+        expected = torch.einsum("ij,jhw->ihw", torch.from_numpy(swap), plain_item)
+        assert torch.allclose(item["image"], expected if item["camera"] == "cam01" else plain_item)
+    assert len(set(per_camera.column("camera"))) > 1
     with pytest.raises(ValueError, match="must be a"):
         NormalizedTorchDataset(path, colour_matrix="linear")
     with pytest.raises(ValueError, match=r"must be \(3, 3\), got \(2, 2\)"):

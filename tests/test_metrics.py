@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
-from relightanyone.model.metrics import masked_psnr, masked_rmse, masked_ssim
+from relightanyone.model.metrics import interior_mask, masked_psnr, masked_rmse, masked_ssim
 
 
 def test_psnr_is_per_image_over_the_mask_and_capped():
@@ -44,3 +45,17 @@ def test_ssim_uses_the_binary_mask_and_clipped_images():
     assert float(masked_ssim(noisy, target, mask)[0]) < 0.9
     with pytest.raises(ValueError, match="mask must be"):
         masked_ssim(target, target, mask[..., :10])
+
+
+def test_interior_mask_drops_the_edge_ring_as_opencv_erosion_does():
+    import cv2
+
+    rng = np.random.default_rng(3)
+    mask = np.zeros((40, 50), np.float32)
+    cv2.circle(mask, (20, 18), 12, 1.0, -1)
+    mask[30:, 35:] = 1.0  # touches the image border: past it counts as inside
+    mask[5, 40] = 1.0  # a lone pixel has no interior
+    soft = mask * rng.uniform(0.6, 1.0, mask.shape).astype(np.float32)  # any value > 0.5 is inside
+    interior = interior_mask(torch.from_numpy(soft)[None, None])[0, 0].numpy()
+    assert np.array_equal(interior, cv2.erode(mask, np.ones((3, 3), np.uint8)))
+    assert interior[5, 40] == 0 and interior[39, 49] == 1 and interior.sum() < mask.sum()

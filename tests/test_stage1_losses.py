@@ -154,6 +154,11 @@ def test_held_out_cameras_are_spread_and_never_all():
     assert len(aside) == 2 and aside <= set(cameras)
     assert held_out_cameras(["a"], 3) == set()
     assert held_out_cameras(["a", "b", "c"], 5) == set()
+    # Subjects of one rig hold out different cameras: over eight subjects every camera trains and every
+    # camera is held out twice.
+    patterns = [held_out_cameras(cameras, 2, rotation) for rotation in range(8)]
+    assert len(set(map(frozenset, patterns))) == 4
+    assert all(sum(c in p for p in patterns) == 2 for c in cameras)
 
 
 @pytest.mark.parametrize("cameras", [4, 8, 12, 16, 40, 80])

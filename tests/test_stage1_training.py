@@ -141,8 +141,8 @@ def test_torchrun_two_gloo_processes_average_gradients(world, tmp_path):
     assert agreeing >= 0.999 * total, f"{total - agreeing} of {total} weights differ"
 
 
-def test_colour_warmup_stores_the_inverse_matrix_and_the_loader_applies_it(world, tmp_path):
-    from relightanyone.format.colour_alignment import read_learned_colour_matrix
+def test_colour_warmup_stores_the_inverse_matrices_and_the_loader_applies_them(world, tmp_path):
+    from relightanyone.format.colour_alignment import read_learned_colour
     from relightanyone.model.train.colour_warmup import run_colour_warmup
 
     metrics = run_colour_warmup(
@@ -150,18 +150,39 @@ def test_colour_warmup_stores_the_inverse_matrix_and_the_loader_applies_it(world
     )
     learned = np.asarray(metrics["colour_matrices"]["db"])
     assert not np.allclose(learned, np.eye(3)), "the warm-up did not update the colour matrix"
-    stored = read_learned_colour_matrix(world[1])
+    stored = read_learned_colour(world[1])
     try:
-        assert read_learned_colour_matrix(world[0]) is None
-        assert np.allclose(stored @ learned, np.eye(3), atol=1e-6)
+        assert read_learned_colour(world[0]) is None
+        assert np.allclose(stored.matrix @ learned, np.eye(3), atol=1e-6)
         assert {"held_out", "held_out_with_colour_matrix"} <= set(metrics)
+        # Every camera trains on some subject (held-out cameras turn per subject), so each has its own:
+        # the dataset's matrix with per-channel gains.
+        assert set(stored.cameras) == {f"cam{c:02d}" for c in range(4)}
+        for camera, render_to_camera in metrics["camera_matrices"]["db"].items():
+            assert np.allclose(stored.cameras[camera] @ render_to_camera, np.eye(3), atol=1e-6)
+            gains = np.asarray(render_to_camera) @ np.linalg.inv(learned)
+            assert np.allclose(gains, np.diag(np.diag(gains)), atol=1e-6) and np.all(np.diag(gains) > 0)
         raw = Stage1Data(world, 1, apply_learned_colour=False)
         aligned = Stage1Data(world, 1)
-        view = aligned.train_views[1][0]
-        expected = np.einsum("ij,jhw->ihw", stored, raw.load_view(view)["image"])
-        assert np.allclose(aligned.load_view(view)["image"], expected, atol=1e-5)
+        for view in aligned.train_views[1][:3]:
+            own = stored.for_camera(view.camera)
+            expected = np.einsum("ij,jhw->ihw", own, raw.load_view(view)["image"])
+            assert np.allclose(aligned.load_view(view)["image"], expected, atol=1e-5)
     finally:
         (world[1] / "colour_alignment.json").unlink()
+
+
+def test_camera_gains_recover_a_cameras_channel_gains_through_zero_mean_render_error():
+    from relightanyone.model.train.colour_warmup import camera_gains
+
+    rng = np.random.default_rng(0)
+    skin = rng.uniform(0.2, 0.9, size=(20000, 1)) * np.array([0.8, 0.5, 0.4])  # nearly one colour line
+    gains = np.array([1.25, 0.95, 0.8])
+    render = skin + rng.normal(0.0, 0.05, size=skin.shape)  # a blurry warm-up render: zero-mean error
+    assert np.allclose(camera_gains(render, skin * gains), gains, rtol=0.01)
+    # Least squares on the same pixels is pulled toward zero and mixes channels: why gains are used.
+    free = np.linalg.lstsq(render, skin * gains, rcond=None)[0].T
+    assert np.max(np.abs(np.diag(free) - gains)) > 0.05
 
 
 def test_render_command_swaps_lighting_codes_without_moving_geometry(trained_run, tmp_path):

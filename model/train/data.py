@@ -1,8 +1,8 @@
 """Training and held-out views of several normalized datasets for stage 1.
 
 Only full-on rows (``pattern == "full"``) of training subjects (``split == "train"``) are used. Each
-subject keeps a few cameras aside (:func:`relightanyone.model.train.sampling.held_out_cameras`) for the
-held-out PSNR/SSIM. Subjects are keyed ``<dataset>/<subject>`` (names only need to be unique within a
+subject keeps a few cameras aside (:func:`relightanyone.model.train.sampling.held_out_cameras`, a
+different few for each subject of a rig) for the held-out PSNR/SSIM. Subjects are keyed ``<dataset>/<subject>`` (names only need to be unique within a
 dataset). Each dataset's rows are a
 :class:`~relightanyone.format.torch_dataset.NormalizedTorchDataset`: images stream from the
 memory-mapped shards one row at a time; nothing but the small index and the tracked meshes is held in
@@ -10,7 +10,7 @@ memory.
 
 A dataset folder carries its template mesh as ``template.obj``; all datasets trained together must
 share one template topology. A learned colour matrix (``colour_alignment.json``, written by the colour
-warm-up) is applied on load: ``rgb = M @ rgb``.
+warm-up; the camera's own where it has one) is applied on load: ``rgb = M @ rgb``.
 """
 
 from __future__ import annotations
@@ -139,11 +139,11 @@ class Stage1Data:
             rows_by_subject.setdefault(subject, []).append(position)
         train: list[ViewRef] = []
         held_out: list[ViewRef] = []
-        for subject in sorted(rows_by_subject):
+        for place, subject in enumerate(sorted(rows_by_subject)):
             subject_index = len(self.subjects)
             self.subjects.append(f"{rows.name}/{subject}")
             positions = rows_by_subject[subject]
-            aside = held_out_cameras([columns["camera"][p] for p in positions], held_out_per_subject)
+            aside = held_out_cameras([columns["camera"][p] for p in positions], held_out_per_subject, place)
             for position in positions:
                 view = ViewRef(
                     dataset_index=dataset_index,

@@ -59,12 +59,17 @@ def balanced_batch(
 MIN_TRAINING_CAMERA_SHARE = 0.75
 
 
-def held_out_cameras(cameras: list[str], count: int) -> set[str]:
+def held_out_cameras(cameras: list[str], count: int, rotation: int = 0) -> set[str]:
     """``count`` cameras spread evenly over the sorted camera names, capped so that at least
-    :data:`MIN_TRAINING_CAMERA_SHARE` of them train (none held out below four cameras)."""
+    :data:`MIN_TRAINING_CAMERA_SHARE` of them train (none held out below four cameras).
+
+    ``rotation`` (the subject's place in its dataset) turns the pattern by that many cameras, so that the
+    subjects of one rig hold out different cameras and every camera trains on some subject: a camera's own
+    colour response can then be learned, and held-out views are still never seen for their subject.
+    """
     ordered = sorted(set(cameras))
     count = min(count, int(len(ordered) * (1 - MIN_TRAINING_CAMERA_SHARE) + 1e-9))
     if count <= 0:
         return set()
     step = len(ordered) / count
-    return {ordered[int(i * step + step / 2)] for i in range(count)}
+    return {ordered[(int(i * step + step / 2) + rotation) % len(ordered)] for i in range(count)}

@@ -14,7 +14,7 @@ from collections.abc import Callable
 import numpy as np
 
 from relightanyone.format.codecs import encode_image
-from relightanyone.format.colour_alignment import read_learned_colour_matrix
+from relightanyone.format.colour_alignment import read_learned_colour
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import MeshRow, build_image_row, make_mesh_key
 from relightanyone.hashing import sha256_bytes
@@ -102,7 +102,7 @@ def _render_subject(writer, settings, task, on_images) -> dict:
     lightings = expansion_lightings(
         model.rig, [row["pattern"] for row in light_rows], list(settings.envmaps), settings.device
     )
-    learned = read_learned_colour_matrix(settings.source)
+    learned = read_learned_colour(settings.source)
     meshes = source.meshes()
     count = 0
     with writer.part(task.name) as part:
@@ -122,9 +122,11 @@ def _render_subject(writer, settings, task, on_images) -> dict:
                 settings.lightings_per_pass,
             )
             pixels = images.permute(0, 2, 3, 1).cpu().numpy()
-            # The images are in the model's colour space: the learned matrix after the source's own
-            # (3×3 @ 3×4: the offset goes through the learned matrix too).
-            colour_matrix = row.colour_matrix if learned is None else learned @ row.colour_matrix
+            # The images are in the model's colour space: the camera's learned matrix after the source's
+            # own (3×3 @ 3×4: the offset goes through the learned matrix too).
+            colour_matrix = (
+                row.colour_matrix if learned is None else learned.for_camera(row.camera) @ row.colour_matrix
+            )
             source_sha256 = sha256_bytes(row.image)
             valid = row.valid_pixels()  # the source row's padding stays padding in every relit image
             for item, image in zip(lightings, pixels, strict=True):

@@ -37,13 +37,14 @@ import numpy as np
 import torch
 
 from relightanyone.errors import InputError
-from relightanyone.format.colour_alignment import read_learned_colour_matrix
+from relightanyone.align.colour import LearnedColour
+from relightanyone.format.colour_alignment import read_learned_colour
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import ImageRow
 from relightanyone.render.camera import crop_intrinsics
 
 INDEX_COLUMNS = ("key", "subject", "frame", "camera", "pattern", "split")
-LEARNED = "learned"  # colour_matrix: the dataset's learned matrix (colour_alignment.json) when it has one
+LEARNED = "learned"  # colour_matrix: the dataset's learned matrices (colour_alignment.json) when it has them
 
 
 class NormalizedTorchDataset(torch.utils.data.Dataset):
@@ -51,8 +52,8 @@ class NormalizedTorchDataset(torch.utils.data.Dataset):
     ``keys``, in their order.
 
     ``colour_matrix``: None (images as stored), a (3, 3) matrix, or ``"learned"``: the dataset's learned
-    matrix (``colour_alignment.json``, written by the colour warm-up) when the folder has one. It is
-    applied on load, ``rgb = colour_matrix @ rgb`` per pixel.
+    alignment (``colour_alignment.json``, written by the colour warm-up) when the folder has one, the row's
+    camera's own matrix where it has one. It is applied on load, ``rgb = colour_matrix @ rgb`` per pixel.
     """
 
     def __init__(
@@ -81,12 +82,18 @@ class NormalizedTorchDataset(torch.utils.data.Dataset):
         if isinstance(colour_matrix, str):
             if colour_matrix != LEARNED:
                 raise ValueError(f"colour_matrix must be a (3, 3) matrix, None or {LEARNED!r}")
-            colour_matrix = read_learned_colour_matrix(self.source.path)
-        if colour_matrix is not None:
-            colour_matrix = np.asarray(colour_matrix, dtype=np.float64)
-            if colour_matrix.shape != (3, 3):
-                raise ValueError(f"colour_matrix must be (3, 3), got {tuple(colour_matrix.shape)}")
-        self.colour_matrix = colour_matrix
+            self.colour: LearnedColour | None = read_learned_colour(self.source.path)
+        elif colour_matrix is not None:
+            fixed = np.asarray(colour_matrix, dtype=np.float64)
+            if fixed.shape != (3, 3):
+                raise ValueError(f"colour_matrix must be (3, 3), got {tuple(fixed.shape)}")
+            self.colour = LearnedColour(fixed)
+        else:
+            self.colour = None
+
+    def colour_matrix_of(self, camera: str) -> np.ndarray | None:
+        """The (3, 3) matrix applied to ``camera``'s images on load, None when none is."""
+        return None if self.colour is None else self.colour.for_camera(camera)
 
     @property
     def name(self) -> str:
@@ -113,8 +120,9 @@ class NormalizedTorchDataset(torch.utils.data.Dataset):
                 f"{self.source.path}: row {row.key!r} declares {row.width}x{row.height} but decodes to "
                 f"image {image.shape[:2]} and mask {mask.shape}"
             )
-        if self.colour_matrix is not None:
-            image = image @ self.colour_matrix.T.astype(np.float32)
+        matrix = self.colour_matrix_of(row.camera)
+        if matrix is not None:
+            image = image @ matrix.T.astype(np.float32)
         valid = row.valid_pixels()
         return {
             "image": torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32)),
