@@ -288,7 +288,9 @@ def test_learned_matrix_roundtrip_and_absence(tmp_path):
     assert learned.for_camera("400137") == pytest.approx(own, abs=0)
     assert learned.for_camera("400163") == pytest.approx(CAST, abs=0)
     # A version-1 document (no per-camera matrices) is still read.
-    path.write_text(json.dumps({"format": "relightanyone.colour_alignment", "version": 1, "matrix": CAST.tolist()}))
+    path.write_text(
+        json.dumps({"format": "relightanyone.colour_alignment", "version": 1, "matrix": CAST.tolist()})
+    )
     assert read_learned_colour(tmp_path).cameras == {}
 
 

@@ -95,7 +95,9 @@ def evaluate_held_out(
     model.train(was_training)
     results = {}
     for index, name in enumerate(data.names):
-        mine = np.asarray([score[2:] for score in scores if score[1] == index], dtype=np.float64).reshape(-1, 3)
+        mine = np.asarray([score[2:] for score in scores if score[1] == index], dtype=np.float64).reshape(
+            -1, 3
+        )
         means = mine.mean(axis=0) if len(mine) else np.full(3, np.nan)
         results[name] = {
             "psnr": float(means[0]),

@@ -13,7 +13,6 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-
 from relightanyone.align.colour import LearnedColour, colour_alignment_text, parse_colour_alignment
 from relightanyone.format.schema import COLOUR_ALIGNMENT_NAME
 

@@ -36,8 +36,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from relightanyone.errors import InputError
 from relightanyone.align.colour import LearnedColour
+from relightanyone.errors import InputError
 from relightanyone.format.colour_alignment import read_learned_colour
 from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import ImageRow
