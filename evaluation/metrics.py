@@ -7,6 +7,10 @@ is available offline. Images are ``(B, 3, H, W)`` float32 scene-linear, masks ``
 * **sRGB** (suffix ``_srgb``): the same metrics on the display encoding of the clipped images
   (:func:`relightanyone.align.colour.linear_to_srgb`, the toolkit's one display conversion). Dark OLAT
   images differ by little in linear values; the display encoding weighs shadows as a viewer sees them.
+* **Level-aligned PSNR** (``psnr_level_aligned``, linear): the PSNR after scaling the prediction by the one
+  gain that fits it best to the target over the mask. A diagnostic, not a goal metric: under lighting the
+  fit is not told, a light twice as bright and an albedo half as bright look the same, so part of a
+  relighting error can be that level alone; this metric says how much.
 * **LPIPS** (AlexNet, torchmetrics' implementation through torchvision) on the sRGB images with the
   background set to 0, computed only when torchmetrics and torchvision import and the AlexNet weights
   are already in the local torch cache; nothing is downloaded. Otherwise :func:`lpips_status` gives the
@@ -24,6 +28,7 @@ from relightanyone.align.colour import linear_to_srgb
 from relightanyone.model.metrics import check_metric_inputs, masked_psnr, masked_rmse, masked_ssim
 
 LINEAR_METRICS = ("psnr", "rmse", "ssim")
+LEVEL_ALIGNED = "psnr_level_aligned"
 SRGB_SUFFIX = "_srgb"
 WEIGHTS_MISSING = "skipped: backbone weights not available offline"
 
@@ -76,14 +81,24 @@ class LpipsMetric:
         return torch.stack(scores)
 
 
+def level_aligned_psnr(prediction: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """PSNR of ``g * prediction`` against ``target`` with the least-squares scalar ``g`` of each image over
+    the mask (both clipped to [0, 1] first) -> (B,)."""
+    check_metric_inputs(prediction, target, mask)
+    p, t = prediction.clamp(0, 1), target.clamp(0, 1)
+    weight = (mask > 0.5).to(p.dtype)
+    gain = (p * t * weight).sum(dim=(1, 2, 3)) / (p * p * weight).sum(dim=(1, 2, 3)).clamp(min=1e-12)
+    return masked_psnr((p * gain.view(-1, 1, 1, 1)).clamp(0, 1), t, weight)
+
+
 def image_metrics(
     prediction: torch.Tensor,
     target: torch.Tensor,
     mask: torch.Tensor,
     lpips_metric: LpipsMetric | None = None,
 ) -> dict[str, torch.Tensor]:
-    """psnr, rmse, ssim in linear RGB, the same with suffix ``_srgb`` in display space (and lpips with a
-    metric object) per image -> dict of (B,) tensors."""
+    """psnr, rmse, ssim in linear RGB, the same with suffix ``_srgb`` in display space, the level-aligned
+    PSNR (and lpips with a metric object) per image -> dict of (B,) tensors."""
     linear = (prediction.clamp(0, 1), target.clamp(0, 1))
     display = tuple(linear_to_srgb(x) for x in linear)
     scores = {}
@@ -91,6 +106,7 @@ def image_metrics(
         scores[f"psnr{suffix}"] = masked_psnr(p, t, mask)
         scores[f"rmse{suffix}"] = masked_rmse(p, t, mask)
         scores[f"ssim{suffix}"] = masked_ssim(p, t, mask)
+    scores[LEVEL_ALIGNED] = level_aligned_psnr(prediction, target, mask)
     if lpips_metric is not None:
         scores["lpips"] = lpips_metric(prediction, target, mask)
     return scores

@@ -15,7 +15,7 @@ from dataclasses import asdict
 from typing import Any
 
 from relightanyone.evaluation import statistics
-from relightanyone.evaluation.metrics import LINEAR_METRICS, SRGB_SUFFIX
+from relightanyone.evaluation.metrics import LEVEL_ALIGNED, LINEAR_METRICS, SRGB_SUFFIX
 from relightanyone.hashing import sha256_bytes
 
 PROTOCOL_VERSION = 1
@@ -74,11 +74,14 @@ def protocol_record(settings: Any, fit_settings: Any) -> dict:
         "metrics": {
             "linear": list(LINEAR_METRICS),
             "srgb": [f"{m}{SRGB_SUFFIX}" for m in LINEAR_METRICS],
+            "diagnostic": [LEVEL_ALIGNED],
             "range": "both images clipped to [0, 1] (linear RGB); sRGB = the display encoding of that",
             "mask": "the answer's subject mask eroded by 1 px, limited to the row mask; SSIM over mask > 0.5",
             "psnr_peak": 1.0,
             "lpips": "AlexNet through torchvision (torchmetrics), sRGB, only with cached weights",
             "per_subject": "mean over the subject's images (lights x cameras)",
+            "stage1_held_out": "stage 1's run: every held-out view of its training subjects, PSNR over the row "
+            "mask's interior (its 1-px edge ring dropped), mean over a dataset's views; psnr_row_mask beside it",
         },
         "statistics": {
             "unit": "subject",

@@ -30,7 +30,7 @@ from relightanyone.evaluation.statistics import CONFIDENCE, RESAMPLES
 ERROR_FULL_SCALE = 0.25
 MIN_TILE = 128
 GRID_ROWS = 3
-METRIC_ORDER = ("psnr", "ssim", "rmse", "psnr_srgb", "ssim_srgb", "rmse_srgb", "lpips")
+METRIC_ORDER = ("psnr", "ssim", "rmse", "psnr_srgb", "ssim_srgb", "rmse_srgb", "psnr_level_aligned", "lpips")
 ARROWS = {
     "psnr": "PSNR ↑",
     "ssim": "SSIM ↑",
@@ -38,6 +38,7 @@ ARROWS = {
     "psnr_srgb": "sRGB PSNR ↑",
     "ssim_srgb": "sRGB SSIM ↑",
     "rmse_srgb": "sRGB RMSE ↓",
+    "psnr_level_aligned": "level-aligned PSNR ↑ (diagnostic)",
     "lpips": "LPIPS ↓",
 }
 ROW_NAMES = {

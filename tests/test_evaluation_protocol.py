@@ -53,10 +53,32 @@ def test_srgb_metrics_weigh_dark_errors_as_a_viewer_sees_them():
     prediction = target * 1.5  # 50 % too bright in the shadows
     mask = torch.ones(1, 1, 16, 16)
     scores = metrics.image_metrics(prediction, target, mask)
-    assert set(scores) == {"psnr", "rmse", "ssim", "psnr_srgb", "rmse_srgb", "ssim_srgb"}
+    assert set(scores) == {
+        "psnr",
+        "rmse",
+        "ssim",
+        "psnr_srgb",
+        "rmse_srgb",
+        "ssim_srgb",
+        "psnr_level_aligned",
+    }
     assert scores["psnr"].item() > 38 and scores["psnr_srgb"].item() < scores["psnr"].item() - 10
     same = metrics.image_metrics(target, target, mask)
     assert same["psnr_srgb"].item() == pytest.approx(120.0)
+
+
+def test_level_aligned_psnr_removes_a_global_level_and_nothing_else():
+    rng = torch.Generator().manual_seed(0)
+    target = torch.rand(2, 3, 16, 16, generator=rng) * 0.5
+    mask = torch.ones(2, 1, 16, 16)
+    mask[:, :, :4] = 0  # outside the mask nothing counts
+    dimmer = target * torch.tensor([0.6, 1.3]).view(2, 1, 1, 1)
+    dimmer[:, :, :4] = 1.0
+    assert metrics.level_aligned_psnr(dimmer, target, mask).tolist() == pytest.approx([120.0, 120.0], abs=0.5)
+    assert metrics.image_metrics(dimmer, target, mask)["psnr"].max().item() < 30
+    # A change of colour (not of level) stays an error.
+    tinted = target * torch.tensor([1.3, 1.0, 0.7]).view(1, 3, 1, 1)
+    assert metrics.level_aligned_psnr(tinted, target, mask).max().item() < 40
 
 
 def test_lpips_is_skipped_without_cached_backbone_weights(tmp_path, monkeypatch):
