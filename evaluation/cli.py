@@ -118,6 +118,14 @@ from relightanyone.cli_options import (
     help="Environment maps compared (0: all).",
 )
 @click.option("--views-per-step", type=int, default=4, show_default=True)
+@click.option(
+    "--lighting-prior-weight",
+    type=click.FloatRange(min=0),
+    default=1.0,
+    show_default=True,
+    help="λ_I of every fit: the pull of the fitted light toward the training rig's full-on light (choose "
+    "it with --split val, never on test subjects).",
+)
 @seed_option()
 @click.option(
     "--json-copy",
@@ -145,6 +153,7 @@ def evaluate_command(
     lights_subset: int,
     envmaps: int,
     views_per_step: int,
+    lighting_prior_weight: float,
     seed: int,
     json_copy: Path | None,
     quiet: bool,
@@ -187,6 +196,7 @@ def evaluate_command(
         monocular_single_image=monocular_single_image,
         split=split,
         views_per_step=views_per_step,
+        lighting_prior_weight=lighting_prior_weight,
         seed=seed,
         progress=not quiet,
         device=str(resolve_device(device)),

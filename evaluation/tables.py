@@ -90,6 +90,7 @@ class EvaluationSettings:
     monocular_single_image: bool = True  # Table 2's single image: monocular mesh, own mask, generic focal
     split: str = "test"  # the held-out split scored: "test" (reported numbers) or "val" (model selection)
     views_per_step: int = 4
+    lighting_prior_weight: float = FitSettings.lighting_prior_weight  # λ_I of every fit
     seed: int = 0
     progress: bool = True
     device: str = "cpu"  # torch device of the fits and renders; scores are computed on the CPU
@@ -357,6 +358,7 @@ class Evaluation:
             inversion_iterations=self.settings.inversion_iterations,
             finetune_iterations=self.settings.finetune_iterations,
             views_per_step=self.settings.views_per_step,
+            lighting_prior_weight=self.settings.lighting_prior_weight,
             seed=self.settings.seed,
             progress=self.settings.progress,
         )

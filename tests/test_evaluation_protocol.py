@@ -169,3 +169,10 @@ def test_the_report_shows_intervals_wins_and_the_run_kind(tmp_path):
     smoke = _results(1, 31.0, 29.0)
     report = write_report(tmp_path, smoke, {}, {}).read_text()
     assert "(smoke run)" in report and "no interval (1 subject), not a win" in report
+
+
+def test_the_lighting_prior_of_evaluate_defaults_to_the_fit_default():
+    from relightanyone.evaluation.cli import evaluate_command
+
+    option = next(p for p in evaluate_command.params if p.name == "lighting_prior_weight")
+    assert option.default == EvaluationSettings().lighting_prior_weight == FitSettings().lighting_prior_weight
