@@ -78,8 +78,8 @@ def _set_threads(threads: int | None) -> None:
     "--per-camera",
     multiple=True,
     metavar="NAME",
-    help="Uncalibrated dataset whose cameras each get their own 3x3 after the warm-up (repeatable; "
-    "default: every --uncalibrated dataset).",
+    help="Uncalibrated dataset whose cameras each get per-channel gains on its 3x3 after the warm-up "
+    "(repeatable; default: every --uncalibrated dataset).",
 )
 @click.option(
     "--no-per-camera",
@@ -108,8 +108,9 @@ def align_colour_command(
 ) -> None:
     """Learn the colour matrices of uncalibrated datasets (warm-up without lighting codes, paper 4.1).
 
-    After the warm-up, every camera of an uncalibrated rig gets its own 3x3 from its training views
-    (a rig's cameras differ in colour response); a camera seen too little keeps its dataset's.
+    After the warm-up, every camera of an uncalibrated rig gets the dataset's 3x3 with per-channel gains of
+    its own, from its training views (a rig's cameras differ in colour response); a camera seen too little
+    keeps its dataset's.
 
     Writes OUT/warmup/ (the warm-up run), OUT/<dataset>/ for every --data: a view of the dataset (links to
     its files; the source is not modified) carrying colour_alignment.json for the uncalibrated ones, and

@@ -5,10 +5,10 @@ dataset ``d``, applied to the render: ``dataset_rgb ≈ C_d @ shared_rgb``. The 
 rig also differ from each other (each sensor and filter has its own response), which one matrix per
 dataset cannot undo; so, after the warm-up, each camera ``c`` of such a dataset gets its own
 ``C_c = diag(g_c) @ C_d``, with per-channel gains ``g_c`` from the warm-up's renders of its training views
-against their images (the same heads seen by every camera pin the differences between cameras down). Gains,
-not a free 3×3: skin colours lie close to one line in RGB, so a 3×3 per camera is not identifiable from
-faces (an unconstrained fit on the reference world gave diagonal entries from −2 to 4). The inverses map each camera's colours into the
-shared space; they are stored beside the dataset's manifest with
+against their images (the same heads seen by every camera pin the differences between cameras down).
+Gains, not a free 3×3: skin colours lie close to one line in RGB, so a 3×3 per camera is not identifiable
+from faces (an unconstrained fit on the reference world gave diagonal entries from −2 to 4). The inverses
+map each camera's colours into the shared space; they are stored beside the dataset's manifest with
 :func:`relightanyone.format.colour_alignment.write_learned_colour_matrix` (``aligned = M @ rgb``), the loader
 applies the row's camera's matrix, and the main run then trains with lighting codes on the aligned colours.
 A camera with too little subject in its training views keeps the dataset's matrix.
@@ -36,6 +36,7 @@ from relightanyone.model.train.checkpoint import load_checkpoint
 from relightanyone.model.train.data import Stage1Data, ViewRef
 from relightanyone.model.train.held_out import render_view
 from relightanyone.model.train.run_files import CHECKPOINT_NAME
+from relightanyone.model.train.sampling import evenly_spread
 from relightanyone.model.train.stage1 import Stage1Config, build_model, train_stage1
 
 WARMUP_DIR = "warmup"
@@ -51,13 +52,6 @@ def camera_gains(render: np.ndarray, image: np.ndarray) -> np.ndarray:
     averages out, where a least-squares fit is pulled toward zero by it (regression dilution).
     """
     return np.asarray(image, dtype=np.float64).sum(axis=0) / np.asarray(render, dtype=np.float64).sum(axis=0)
-
-
-def spread_views(views: list[ViewRef], count: int) -> list[ViewRef]:
-    """Up to ``count`` of ``views`` spread evenly over their order (subjects, then frames)."""
-    if len(views) <= count:
-        return list(views)
-    return [views[i] for i in np.linspace(0, len(views) - 1, count).round().astype(int)]
 
 
 @torch.no_grad()
@@ -85,7 +79,7 @@ def fit_camera_matrices(
         fitted[name] = {}
         for camera in sorted(by_camera):
             renders, images = [], []
-            for view in spread_views(by_camera[camera], CAMERA_FIT_VIEWS):
+            for view in evenly_spread(by_camera[camera], CAMERA_FIT_VIEWS):
                 out = render_view(model, data, view, use_lighting=False)
                 inside = interior_mask(out["mask"])[0, 0].numpy() > 0.5
                 renders.append(out["render"][0].numpy()[:, inside].T)

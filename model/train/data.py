@@ -2,8 +2,8 @@
 
 Only full-on rows (``pattern == "full"``) of training subjects (``split == "train"``) are used. Each
 subject keeps a few cameras aside (:func:`relightanyone.model.train.sampling.held_out_cameras`, a
-different few for each subject of a rig) for the held-out PSNR/SSIM. Subjects are keyed ``<dataset>/<subject>`` (names only need to be unique within a
-dataset). Each dataset's rows are a
+different few for each subject of a rig) for the held-out PSNR/SSIM. Subjects are keyed
+``<dataset>/<subject>`` (names only need to be unique within a dataset). Each dataset's rows are a
 :class:`~relightanyone.format.torch_dataset.NormalizedTorchDataset`: images stream from the
 memory-mapped shards one row at a time; nothing but the small index and the tracked meshes is held in
 memory.

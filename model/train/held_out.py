@@ -19,6 +19,7 @@ from relightanyone.model.networks.render import render_gaussians
 from relightanyone.model.networks.stage1 import Stage1Model
 from relightanyone.model.train.data import Stage1Data, ViewRef
 from relightanyone.model.train.distributed import ProcessGroup, gather_items, shard
+from relightanyone.model.train.sampling import evenly_spread
 
 
 @torch.no_grad()
@@ -55,9 +56,8 @@ def held_out_selection(
     selection = []
     for index in range(len(data.names)):
         views = data.held_out_views[index]
-        if max_views_per_dataset is not None and len(views) > max_views_per_dataset:
-            picks = np.linspace(0, len(views) - 1, max_views_per_dataset).round().astype(int)
-            views = [views[i] for i in picks]
+        if max_views_per_dataset is not None:
+            views = evenly_spread(views, max_views_per_dataset)
         selection += [(index, view) for view in views]
     return selection
 

@@ -54,6 +54,13 @@ def balanced_batch(
     return [(int(d), int(rng.integers(0, views_per_dataset[d]))) for d in datasets]
 
 
+def evenly_spread(items: list, count: int) -> list:
+    """Up to ``count`` of ``items`` spread evenly over their order (all of them when there are no more)."""
+    if len(items) <= count:
+        return list(items)
+    return [items[i] for i in np.linspace(0, len(items) - 1, count).round().astype(int)]
+
+
 # At least this share of each subject's cameras trains, whatever the preset asks to hold out: a preset
 # sized for a 40-camera light stage must not leave an 8-camera rig's subject with one training view.
 MIN_TRAINING_CAMERA_SHARE = 0.75
