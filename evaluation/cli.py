@@ -64,6 +64,14 @@ from relightanyone.cli_options import (
     help="Table 3b fits the held-out flat-lit subjects with every arm (off: with the main runs only).",
 )
 @click.option(
+    "--flat-fits-with-dataset-code/--flat-fits-with-unknown-light",
+    "flat_fits_with_dataset_code",
+    default=True,
+    show_default=True,
+    help="Table 3b renders a held-out flat-lit subject's input views under its dataset's stage-1 lighting "
+    "code, as stage 1 saw that dataset (off: as a capture under an unknown light of the OLAT rig).",
+)
+@click.option(
     "--unknown-lighting/--dataset-lighting",
     "unknown_lighting",
     default=True,
@@ -143,6 +151,7 @@ def evaluate_command(
     single_stage: tuple[Path, ...],
     ablation: tuple[tuple[str, Path, Path], ...],
     ablation_fits: bool,
+    flat_fits_with_dataset_code: bool,
     unknown_lighting: bool,
     monocular_single_image: bool,
     out: Path,
@@ -192,6 +201,7 @@ def evaluate_command(
         envmaps=envmaps or None,
         subjects_per_dataset=subjects or None,
         ablation_fits=ablation_fits,
+        flat_fits_with_dataset_code=flat_fits_with_dataset_code,
         unknown_lighting=unknown_lighting,
         monocular_single_image=monocular_single_image,
         split=split,

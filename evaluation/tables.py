@@ -64,7 +64,7 @@ from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import make_mesh_key
 from relightanyone.format.torch_dataset import NormalizedTorchDataset, image_hwc
 from relightanyone.model.fit.avatar import check_pinhole_cameras, decoded_avatar, relight_views
-from relightanyone.model.fit.fitter import FitSettings, Fitter, load_relightable_model
+from relightanyone.model.fit.fitter import DatasetLitFitter, FitSettings, Fitter, load_relightable_model
 from relightanyone.model.fit.views import FitViews, load_fit_views
 from relightanyone.model.train.budget import two_stage_budget
 from relightanyone.model.train.run_files import read_run_info
@@ -87,6 +87,8 @@ class EvaluationSettings:
     subjects_per_dataset: int | None = 1  # held-out subjects per dataset (all when None)
     ablation_fits: bool = True  # Table 3b fits held-out flat-lit subjects with every ablation arm
     unknown_lighting: bool = True  # Table 1/2 inputs under the world's unknown lighting (else the rows)
+    # Table 3b fits a flat-lit subject under its dataset's lighting code (else as an unknown rig lighting)
+    flat_fits_with_dataset_code: bool = True
     monocular_single_image: bool = True  # Table 2's single image: monocular mesh, own mask, generic focal
     split: str = "test"  # the held-out split scored: "test" (reported numbers) or "val" (model selection)
     views_per_step: int = 4
@@ -374,9 +376,11 @@ class Evaluation:
         data: Path | None = None,
         views: FitViews | None = None,
         single_run=None,
+        input_dataset: str | None = None,
     ):
         """Fit ``views``, by default the subject's full-on frame in ``cameras`` (read from ``data``, default
-        the evaluated dataset); returns the avatar (timed under ``label``)."""
+        the evaluated dataset); returns the avatar (timed under ``label``). With ``input_dataset``, the
+        views are rendered under that stage-1 dataset's lighting code (:class:`DatasetLitFitter`)."""
 
         if views is None:
             views = load_fit_views(data or self.inputs.datasets[world_name], subject, cameras=cameras)
@@ -386,6 +390,10 @@ class Evaluation:
         start = time.perf_counter()
         if single or single_run is not None:
             fitter = SingleStageFitter(single_run or self.single, views, self.fit_settings())
+        elif input_dataset is not None:
+            model = model or self.model
+            code = model.dataset_lighting_code(input_dataset)
+            fitter = DatasetLitFitter(model, views, code, self.fit_settings())
         else:
             fitter = Fitter(model or self.model, views, self.fit_settings())
         fitter.invert()
@@ -569,7 +577,8 @@ class Evaluation:
         ``table3``: stage-1 training subjects of each arm decoded from their identity codes, no fitting
         (what the OLAT expansion renders), so nothing can absorb a difference between the arms.
         ``table3_fitted``: held-out subjects fitted on their full-on frame, with every arm when
-        ``settings.ablation_fits``, else with the main runs only.
+        ``settings.ablation_fits``, else with the main runs only; under their dataset's lighting code when
+        ``settings.flat_fits_with_dataset_code``, else as a capture under an unknown rig lighting.
         """
 
         stage1_names = self._stage1_dataset_names()
@@ -604,6 +613,7 @@ class Evaluation:
                 decoded[f"{world_name}/{subject}"] = self._ablation_entry(
                     world_name, subject, cameras, avatars
                 )
+            input_dataset = dataset.name if self.settings.flat_fits_with_dataset_code else None
             for subject in self.held_out_subjects(world_name):
                 cameras, _ = subject_cameras(path, subject, self.settings.max_views)
                 if self.settings.ablation_fits:
@@ -615,11 +625,16 @@ class Evaluation:
                             f"two-stage fit, {row}",
                             model=arm.model,
                             data=arm_dataset(arm, dataset.name, path),
+                            input_dataset=input_dataset,
                         )
                         for row, arm in self.arms.items()
                     }
                 else:
-                    avatars = {"two_stage": self.fit(world_name, subject, cameras, "two-stage multi-view")}
+                    avatars = {
+                        "two_stage": self.fit(
+                            world_name, subject, cameras, "two-stage multi-view", input_dataset=input_dataset
+                        )
+                    }
                 fitted[f"{world_name}/{subject}"] = self._ablation_entry(
                     world_name, subject, cameras, avatars
                 )

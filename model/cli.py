@@ -453,6 +453,15 @@ def render_stage1_command(
     multiple=True,
     help="Input camera (repeatable; default: all cameras of the frame). One camera = a single-image fit.",
 )
+@click.option(
+    "--input-lighting",
+    type=click.Choice(["rig", "dataset"]),
+    default="rig",
+    show_default=True,
+    help="rig: the images are lit by an unknown lighting of the OLAT rig, estimated with the fit. dataset: "
+    "--data is one of stage 1's own datasets (a held-out subject of a flat-lit capture, say) and the images "
+    "are rendered under its lighting code, so the subject's level comes from what stage 1 learned of it.",
+)
 @click.option("--inversion-iterations", type=int, default=300, show_default=True)
 @click.option("--finetune-iterations", type=int, default=300, show_default=True)
 @click.option("--views-per-step", type=int, default=4, show_default=True)
@@ -474,6 +483,7 @@ def fit_command(
     finetune_iterations,
     views_per_step,
     image_scale,
+    input_lighting,
     seed,
     threads,
     device,
@@ -510,6 +520,7 @@ def fit_command(
         settings=settings,
         image_scale=image_scale,
         device=resolve_device(device),
+        input_lighting=input_lighting,
     ):
         fits.append(fit)
         if fit.kept:

@@ -15,8 +15,10 @@ import pytest
 import torch
 from helpers.sphere_world import LIGHTS, RIG_INTENSITY, SIZE, build_sphere_world
 
+from relightanyone.errors import InputError
 from relightanyone.model.fit.avatar import FittedAvatar
 from relightanyone.model.fit.fitter import (
+    DatasetLitFitter,
     FitSettings,
     Fitter,
     fit_subject,
@@ -25,6 +27,7 @@ from relightanyone.model.fit.fitter import (
     locality_loss,
 )
 from relightanyone.model.fit.views import load_fit_views
+from relightanyone.model.networks.render import render_views
 from relightanyone.render.camera import Cameras
 from relightanyone.render.lights import PointLights
 
@@ -268,6 +271,37 @@ def test_single_image_fit_without_a_tracked_mesh(world):
     assert single.metadata["cameras"] == ["cam01"] and single.means.shape == (model.stage1.binding.count, 3)
 
 
+def test_dataset_lit_fit_renders_as_stage1_under_the_input_code_and_estimates_no_light(world):
+    model = load_relightable_model(world["stage1"], world["stage2"])
+    assert torch.equal(model.dataset_lighting_code("olat"), model.lighting_code)
+    with pytest.raises(InputError, match=r"dataset 'other'.*\['olat'\]"):
+        model.dataset_lighting_code("other")
+    views = load_fit_views(world["data"], "s02")
+    settings = FitSettings(inversion_iterations=6, finetune_iterations=2, inversion_lr=5e-2, progress=False)
+    # Any code: the fit must render the input views under exactly the code it is given.
+    code = model.lighting_code + 0.5
+    fitter = DatasetLitFitter(model, views, code, settings)
+    image, alpha, _, _ = fitter.render([0, 1])
+    with torch.no_grad():
+        _, gaussians = model.stage1.decode(fitter.z_id, code[None])
+        expected, expected_alpha = render_views(gaussians, views.K[:2], views.w2c[:2], SIZE, SIZE)
+    torch.testing.assert_close(image.detach(), expected)
+    torch.testing.assert_close(alpha.detach(), expected_alpha)
+    before = fitter.evaluate()
+    fitter.invert()
+    assert fitter.evaluate()["l1"] < before["l1"]
+    assert "lighting_prior" not in fitter.history["inversion"][-1]
+    assert torch.equal(fitter.light_intensities().detach(), (model.full_on_rig or model.rig).intensities)
+    fitter.finetune()
+    avatar = fitter.avatar()
+    # The avatar is the OLAT-code decode of the fitted subject, relit by stage 2 like any other fit.
+    with torch.no_grad():
+        _, olat_gaussians = fitter.stage1.decode(fitter.z_id, model.lighting_code[None])
+        _, input_gaussians = fitter.stage1.decode(fitter.z_id, code[None])
+    torch.testing.assert_close(avatar.colours, olat_gaussians.colours[0])
+    assert not torch.allclose(avatar.colours, input_gaussians.colours[0])
+
+
 def test_fit_command_writes_one_avatar_per_held_out_subject_and_keeps_it(world, tmp_path):
     from click.testing import CliRunner
 
@@ -287,3 +321,22 @@ def test_fit_command_writes_one_avatar_per_held_out_subject_and_keeps_it(world, 
     assert again.exit_code == 0 and "kept" in again.output
     missing = CliRunner().invoke(cli, [*args[:7], "--subject", "nobody", "--out", str(tmp_path / "x")])
     assert missing.exit_code != 0 and "nobody" in missing.output
+
+
+def test_fit_command_fits_inputs_under_their_dataset_code(world, tmp_path):
+    from click.testing import CliRunner
+
+    from relightanyone.cli import cli
+
+    args = ["fit", "--stage1", str(world["stage1"]), "--stage2", str(world["stage2"]), "--data", str(world["data"]),
+            "--subject", "s02", "--camera", "cam01", "--inversion-iterations", "2", "--finetune-iterations", "1",
+            "--threads", "1", "--input-lighting", "dataset", "--out", str(tmp_path)]  # fmt: skip
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    avatar = FittedAvatar.load(tmp_path / "s02.avatar")
+    assert avatar.metadata["input_lighting"] == "dataset"
+    # No light is estimated: the avatar keeps the OLAT dataset's full-on light as its scene lighting.
+    model = load_relightable_model(world["stage1"], world["stage2"])
+    assert torch.equal(avatar.scene_intensities, (model.full_on_rig or model.rig).intensities)
+    wrong = CliRunner().invoke(cli, [*args[:-4], "--input-lighting", "studio", "--out", str(tmp_path / "x")])
+    assert wrong.exit_code != 0 and "studio" in wrong.output

@@ -18,6 +18,12 @@ available, the tracked mesh of that frame, all read from a normalized dataset (s
    is penalized, so the finetuning changes this subject and leaves the rest of the identity space alone.
    Stage 2 stays frozen throughout.
 
+A subject captured in one of stage 1's own flat-lit datasets is fitted by :class:`DatasetLitFitter`
+instead: its input views are rendered as stage 1 renders that dataset's training images (decoded with the
+dataset's lighting code, in the Gaussians' own colours, no light to estimate), so the subject's level and
+colour come from what stage 1 learned of that dataset, the way an OLAT expansion relights a training
+subject. The avatar is decoded with the OLAT code and relit through stage 2 as above.
+
 The result is a :class:`relightanyone.model.fit.avatar.FittedAvatar`.
 """
 
@@ -63,6 +69,7 @@ VIEW_STREAM = 10  # generator streams of the fit (views per step, locality codes
 LOCALITY_STREAM = 11
 BACKGROUND_STREAM = 12
 MIN_INTENSITY = 1e-8  # log-parameterised intensities start here for rig lights calibrated at zero
+INPUT_LIGHTINGS = ("rig", "dataset")  # how fit inputs are lit: see fit_subject
 
 
 @dataclass(frozen=True)
@@ -109,6 +116,7 @@ class RelightableModel:
     olat_dataset: str
     sources: dict = field(default_factory=dict)
     full_on_rig: PointLights | None = None  # the rig as lit in full-on frames (None: as ``rig``)
+    stage1_datasets: tuple[str, ...] = ()  # stage 1's datasets, in the order of its lighting codes
 
     @property
     def training_codes(self) -> torch.Tensor:
@@ -118,6 +126,15 @@ class RelightableModel:
     @property
     def device(self) -> torch.device:
         return self.lighting_code.device
+
+    def dataset_lighting_code(self, dataset: str) -> torch.Tensor:
+        """(z_l,) stage 1's lighting code of one of its datasets (zeros in a model without codes)."""
+        if dataset not in self.stage1_datasets:
+            raise InputError(
+                f"stage 1 was not trained on dataset {dataset!r} ({list(self.stage1_datasets)}); "
+                "only its own datasets have a lighting code"
+            )
+        return self.stage1.lighting_codes[self.stage1_datasets.index(dataset)].detach()
 
     def to(self, device: torch.device | str) -> RelightableModel:
         """This model with its networks moved to ``device`` (in place, as ``nn.Module.to``) and its
@@ -178,6 +195,7 @@ def load_relightable_model(
         rig=rig,
         olat_dataset=dataset_name,
         full_on_rig=full_on_rig,
+        stage1_datasets=tuple(run.datasets),
         sources={
             "stage1_run": str(Path(stage1_run).resolve()),
             "stage2_run": str(stage2_run.resolve()),
@@ -235,6 +253,8 @@ class Fitter:
     The given model's weights are never changed: it is frozen (eval mode, no gradients) and kept as the
     locality reference, while the fitter finetunes a copy of its stage-1 model.
     """
+
+    fits_lighting = True  # the inversion estimates the scene's light intensities
 
     def __init__(self, model: RelightableModel, views: FitViews, settings: FitSettings | None = None) -> None:
         self.model = model
@@ -362,11 +382,10 @@ class Fitter:
         """``10 L1 + 0.2 (1 − SSIM) + 0.4 vertex L2 + λ_id ‖z_id‖²`` and its logged terms."""
         terms, _, _ = self.data_terms(view_index, self.step_backgrounds(step, len(view_index)))
         terms["identity"] = self.z_id.pow(2).sum()
-        terms["lighting_prior"] = (self.log_intensities - self.log_intensities_start).pow(2).mean()
-        priors = {
-            "identity": self.settings.identity_weight,
-            "lighting_prior": self.settings.lighting_prior_weight,
-        }
+        priors = {"identity": self.settings.identity_weight}
+        if self.fits_lighting:
+            terms["lighting_prior"] = (self.log_intensities - self.log_intensities_start).pow(2).mean()
+            priors["lighting_prior"] = self.settings.lighting_prior_weight
         total = weighted_sum(terms, priors, self.data_loss(terms))
         return total, _logged(terms, total)
 
@@ -401,8 +420,9 @@ class Fitter:
         for parameter in self.decoder_parameters():
             parameter.requires_grad_(False)
         self.z_id.requires_grad_(True)
-        self.log_intensities.requires_grad_(True)
-        optimizer = torch.optim.Adam([self.z_id, self.log_intensities], lr=self.settings.inversion_lr)
+        self.log_intensities.requires_grad_(self.fits_lighting)
+        moved = [self.z_id, self.log_intensities] if self.fits_lighting else [self.z_id]
+        optimizer = torch.optim.Adam(moved, lr=self.settings.inversion_lr)
         return self._optimize(
             "inversion", optimizer, iterations, lambda step, views: self.inversion_loss(views, step)
         )
@@ -489,6 +509,39 @@ class Fitter:
         )
 
 
+class DatasetLitFitter(Fitter):
+    """Fit of a subject captured in one of stage 1's flat-lit datasets, under that dataset's lighting code.
+
+    Inversion and finetuning render the input views as stage 1 rendered the dataset's training images:
+    decoded with ``input_lighting_code`` (the dataset's z_l), splatted in the Gaussians' own colours. Only
+    z_id moves in the inversion; the scene lighting is not estimated, because the dataset's code already
+    says how that capture is lit and exposed. :meth:`avatar` is the base class's: decoded with the OLAT
+    code, relightable through stage 2, with the rig's full-on light.
+    """
+
+    fits_lighting = False
+
+    def __init__(
+        self,
+        model: RelightableModel,
+        views: FitViews,
+        input_lighting_code: torch.Tensor,
+        settings: FitSettings | None = None,
+    ) -> None:
+        super().__init__(model, views, settings)
+        self.z_l_input = input_lighting_code.detach().reshape(1, -1).to(self.z_l.device)
+
+    def render(self, view_index: list[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, Gaussians]:
+        """The current fit as the input dataset shows it: (images (v, 3, H, W), alphas (v, 1, H, W),
+        vertices, Gaussians)."""
+        vertices, gaussians = self.stage1.decode(self.z_id, self.z_l_input)
+        height, width = self.views.images.shape[-2:]
+        image, alpha = render_views(
+            gaussians, self.views.K[view_index], self.views.w2c[view_index], width, height
+        )
+        return image, alpha, vertices, gaussians
+
+
 def _logged(terms: dict[str, torch.Tensor], total: torch.Tensor) -> dict[str, float]:
     logged = {name: float(value.detach()) for name, value in terms.items()}
     logged["total"] = float(total.detach())
@@ -507,9 +560,17 @@ def fit_subject(
     image_scale: float = 1.0,
     out: Path | None = None,
     device: torch.device | str = "cpu",
+    input_lighting: str = "rig",
 ) -> FittedAvatar:
     """Fit a subject of a normalized dataset end to end (inversion, then finetuning) on ``device``; save
-    to ``out`` if given."""
+    to ``out`` if given.
+
+    ``input_lighting``: ``"rig"``, the images are lit by an unknown lighting of the OLAT rig, estimated
+    with the fit (:class:`Fitter`); ``"dataset"``, ``data`` is one of stage 1's own datasets and its
+    images are rendered under that dataset's lighting code (:class:`DatasetLitFitter`).
+    """
+    if input_lighting not in INPUT_LIGHTINGS:
+        raise InputError(f"input lighting must be one of {INPUT_LIGHTINGS}, got {input_lighting!r}")
     settings = settings or FitSettings()
     torch.manual_seed(settings.seed)
     model = load_relightable_model(stage1_run, stage2_run, device)
@@ -522,10 +583,14 @@ def fit_subject(
             f"{data}: tracked mesh of {subject!r} frame {views.frame} has {views.tracked_vertices.shape[0]} "
             f"vertices, the model's template has {model.stage1.mesh_decoder.template_vertices.shape[0]}"
         )
-    fitter = Fitter(model, views, settings)
+    if input_lighting == "dataset":
+        code = model.dataset_lighting_code(NormalizedDataset(data).name)
+        fitter = DatasetLitFitter(model, views, code, settings)
+    else:
+        fitter = Fitter(model, views, settings)
     fitter.invert()
     fitter.finetune()
-    avatar = fitter.avatar({"data": str(Path(data).resolve())})
+    avatar = fitter.avatar({"data": str(Path(data).resolve()), "input_lighting": input_lighting})
     if out is not None:
         avatar.save(out)
     return avatar

@@ -55,6 +55,7 @@ def fit_subjects(
     settings: FitSettings | None = None,
     image_scale: float = 1.0,
     device: torch.device | str = "cpu",
+    input_lighting: str = "rig",
 ) -> Iterator[SubjectFit]:
     """Fit each subject into ``out/<subject>.avatar`` (:func:`~relightanyone.model.fit.fitter.fit_subject`),
     yielding each as it is done; an avatar already in ``out`` is kept."""
@@ -77,6 +78,7 @@ def fit_subjects(
             image_scale=image_scale,
             out=target,
             device=device,
+            input_lighting=input_lighting,
         )
         views = len(avatar.metadata.get("cameras", []))
         yield SubjectFit(subject, target, False, views, dict(avatar.metadata.get("final_losses", {})))
