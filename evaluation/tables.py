@@ -64,7 +64,7 @@ from relightanyone.format.reader import NormalizedDataset
 from relightanyone.format.schema import make_mesh_key
 from relightanyone.format.torch_dataset import NormalizedTorchDataset, image_hwc
 from relightanyone.model.fit.avatar import check_pinhole_cameras, decoded_avatar, relight_views
-from relightanyone.model.fit.fitter import DatasetLitFitter, FitSettings, Fitter, load_relightable_model
+from relightanyone.model.fit.fitter import FitSettings, load_relightable_model, make_fitter
 from relightanyone.model.fit.views import FitViews, load_fit_views
 from relightanyone.model.train.budget import two_stage_budget
 from relightanyone.model.train.run_files import read_run_info
@@ -390,12 +390,8 @@ class Evaluation:
         start = time.perf_counter()
         if single or single_run is not None:
             fitter = SingleStageFitter(single_run or self.single, views, self.fit_settings())
-        elif input_dataset is not None:
-            model = model or self.model
-            code = model.dataset_lighting_code(input_dataset)
-            fitter = DatasetLitFitter(model, views, code, self.fit_settings())
         else:
-            fitter = Fitter(model or self.model, views, self.fit_settings())
+            fitter = make_fitter(model or self.model, views, self.fit_settings(), input_dataset)
         fitter.invert()
         fitter.finetune()
         avatar = fitter.avatar()

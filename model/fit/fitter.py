@@ -542,6 +542,19 @@ class DatasetLitFitter(Fitter):
         return image, alpha, vertices, gaussians
 
 
+def make_fitter(
+    model: RelightableModel,
+    views: FitViews,
+    settings: FitSettings | None = None,
+    input_dataset: str | None = None,
+) -> Fitter:
+    """A :class:`DatasetLitFitter` under the lighting code of stage-1 dataset ``input_dataset``, or without
+    one a :class:`Fitter` that estimates an unknown lighting of the OLAT rig."""
+    if input_dataset is None:
+        return Fitter(model, views, settings)
+    return DatasetLitFitter(model, views, model.dataset_lighting_code(input_dataset), settings)
+
+
 def _logged(terms: dict[str, torch.Tensor], total: torch.Tensor) -> dict[str, float]:
     logged = {name: float(value.detach()) for name, value in terms.items()}
     logged["total"] = float(total.detach())
@@ -583,11 +596,8 @@ def fit_subject(
             f"{data}: tracked mesh of {subject!r} frame {views.frame} has {views.tracked_vertices.shape[0]} "
             f"vertices, the model's template has {model.stage1.mesh_decoder.template_vertices.shape[0]}"
         )
-    if input_lighting == "dataset":
-        code = model.dataset_lighting_code(NormalizedDataset(data).name)
-        fitter = DatasetLitFitter(model, views, code, settings)
-    else:
-        fitter = Fitter(model, views, settings)
+    input_dataset = NormalizedDataset(data).name if input_lighting == "dataset" else None
+    fitter = make_fitter(model, views, settings, input_dataset)
     fitter.invert()
     fitter.finetune()
     avatar = fitter.avatar({"data": str(Path(data).resolve()), "input_lighting": input_lighting})
