@@ -24,7 +24,9 @@ Measures, in one run on the same images:
   ``checks_cost_fraction_full_size``;
 * ``full_size``: bare loop and warm 1-worker ingest of a smaller world whose Ava-256 images have the real
   dataset's size (667×1024), cropped to the ``small`` (512²) and ``paper`` (1024²) sizes: where the costs
-  go when images are as large as real ones.
+  go when images are as large as real ones; also an undistorting bare loop, whose resize is the ingest's
+  own undistort + crop + anti-aliased resize through each view's lens (the images are distorted, as real
+  ones are): the ingest against the least a distorted rig needs.
 
 Usage: ``python bench/ingest.py [--world DIR] [--full-size-world DIR] [--out bench/results/ingest.json]``;
 the worlds are generated (Ava-256 only) when absent. ``--full-size-only small|paper`` measures only the
@@ -143,12 +145,17 @@ def full_size(world: Path, presets: tuple[str, ...] = FULL_SIZE_PRESETS) -> dict
     runs = {}
     for preset in presets:
         bare = bare_loop(plan, PRESET_SIZES[preset])
+        undistorting = bare_loop(plan, PRESET_SIZES[preset], undistort=True)
         one = warm_end_to_end(plan, world, 1, preset)
         runs[preset] = {
             "crop_size": PRESET_SIZES[preset],
             "bare_loop": bare,
+            "undistorting_bare_loop": undistorting,
             "end_to_end_1_worker": one,
             "end_to_end_over_bare_loop": round(one["images_per_s"] / bare["images_per_s"], 3),
+            "end_to_end_over_undistorting_bare_loop": round(
+                one["images_per_s"] / undistorting["images_per_s"], 3
+            ),
         }
         runs[preset]["checks"] = checks_cost(plan, world, preset)
         print(f"full size, {preset} crops: ratio {runs[preset]['end_to_end_over_bare_loop']}", flush=True)
@@ -170,12 +177,15 @@ def make_plan(world: Path, subjects: int | None = None):
     return plan
 
 
-def bare_loop(plan, size: int) -> dict:
+def bare_loop(plan, size: int, undistort: bool = False) -> dict:
     """Decode + resize + encode every view of ``plan`` in this process; images per second.
 
     Encode is what the format stores: the image in the default encoding and the mask PNG, under the
     shards' zstd (for the default ``raw-f16`` the compression is the encoding's only real work). Threads
     are set as an ingest task sets them (one for OpenCV and for the decoders), so both decode alike.
+    With ``undistort``, the resize is the ingest's own undistort + crop + anti-aliased resize of the same
+    square through the view's lens (no mask, valid pixels, checks or rows): the loop a distorted rig
+    cannot do without.
     """
     import cv2
     import pyarrow as pa
@@ -183,6 +193,7 @@ def bare_loop(plan, size: int) -> dict:
     from relightanyone.format.arrow_io import ZSTD_LEVEL
     from relightanyone.format.codecs import encode_image, encode_mask
     from relightanyone.ingest.decode import TaskDecoder
+    from relightanyone.ingest.steps import undistort_crop_resize
     from relightanyone.ingest.subject_task import configure_task_threads
 
     configure_task_threads()  # one AVIF thread, as in the tasks; videos are not timed here
@@ -197,11 +208,16 @@ def bare_loop(plan, size: int) -> dict:
             for view in views:
                 image, _ = decoder.decode(view.image)
                 side = min(image.shape[:2])
-                resized = cv2.resize(image[:side, :side], (size, size), interpolation=cv2.INTER_AREA)
+                if undistort:
+                    box = (0, 0, side, side)
+                    resized, _ = undistort_crop_resize(image, view.camera.K, view.camera.dist, box, size)
+                else:
+                    resized = cv2.resize(image[:side, :side], (size, size), interpolation=cv2.INTER_AREA)
                 codec.compress(encode_image(resized))
                 codec.compress(encode_mask(resized[:, :, 0] > 0.01))
     seconds = time.perf_counter() - start
     return {
+        "undistorts": undistort,
         "passes": BARE_PASSES,
         "images": len(views) * BARE_PASSES,
         "seconds": round(seconds, 3),
@@ -476,6 +492,10 @@ def main() -> None:
             "goal_checks_cost_fraction": 0.1,
             "end_to_end_1_worker_over_bare_loop_full_size": {
                 preset: run["end_to_end_over_bare_loop"] for preset, run in large["presets"].items()
+            },
+            "end_to_end_1_worker_over_undistorting_bare_loop_full_size": {
+                preset: run["end_to_end_over_undistorting_bare_loop"]
+                for preset, run in large["presets"].items()
             },
             "cold_two_workers_over_one": round(
                 cold[0]["seconds_with_imports"] / cold[1]["seconds_with_imports"], 3
