@@ -113,6 +113,32 @@ def _get(mapping: Mapping[str, Any], key: str, path: str | Path, field: str) -> 
     return mapping[key]
 
 
+class DuplicateKeyError(json.JSONDecodeError):
+    """A JSON object names one key twice (Python's parser would silently keep the last)."""
+
+    def __init__(self, key: str):
+        ValueError.__init__(self, f"key {key!r} appears twice in one object (only one can be meant)")
+        self.msg, self.doc, self.pos, self.lineno, self.colno = str(self), "", 0, 0, 0
+
+    def __reduce__(self):
+        return DuplicateKeyError, (self.msg,)
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    document: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in document:
+            raise DuplicateKeyError(key)
+        document[key] = value
+    return document
+
+
+def loads_json(text: str) -> Any:
+    """``json.loads`` that refuses an object naming a key twice (:class:`DuplicateKeyError`, a
+    ``json.JSONDecodeError``): two cameras of one name, one of them silently dropped, is a broken file."""
+    return json.loads(text, object_pairs_hook=_unique_keys)
+
+
 def load_json(source: str | Path | Mapping[str, Any], name: str | Path | None = None) -> tuple[Any, str]:
     """Read a JSON file and return it with the name used in errors. ``source`` may also be a document
     already parsed: a dict, or anything when ``name`` gives the file it was read from."""
@@ -120,7 +146,7 @@ def load_json(source: str | Path | Mapping[str, Any], name: str | Path | None = 
         return source, str(name) if name is not None else "<dict>"
     path = Path(source)
     try:
-        return json.loads(path.read_text()), str(path)
+        return loads_json(path.read_text()), str(path)
     except FileNotFoundError:
         raise CalibrationError(path, "<file>", "file not found") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as error:

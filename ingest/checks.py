@@ -55,6 +55,8 @@ PROJECTED_INSIDE = 0.5  # share of the projected head's bounding box that must l
 PROJECTED_EXTENT = (0.03, 4.0)  # projected head extent / the image's larger side
 SURROUND_MIN_DEG = 10.0  # the largest angle between two cameras seen from the head's centre
 SUBJECT_SHARE = 0.5  # a failure on this share of a subject's views or frames is a dataset-level mistake
+MIN_SUBJECT_VIEWS = 4  # judged views a subject needs before its silhouette failures refuse it as a whole
+FRAME_MISMATCH = "the tracked mesh disagrees with the frame's images"
 EXPLAINED_SHARE = 0.9  # an alternative explains a failure when this share of the views then passes
 HEAD_POINTS = 200  # vertices used for the camera checks (evenly subsampled)
 HULL_POINTS = 150  # vertices whose convex hull outlines the whole mesh for the image check
@@ -501,8 +503,9 @@ def fit_findings(
     ratio = tracked_extent_m / max(reference_extent_m, 1e-12)
     if ratio > 3 or ratio < 1 / 3:
         cause = (
-            f"the template is {max(ratio, 1 / ratio):.0f}x {'smaller' if ratio > 1 else 'larger'} than the "
-            "tracked meshes: one of them in mm? — give the template in metres, like the meshes"
+            f"the template is {_times(ratio)} {'smaller' if ratio > 1 else 'larger'} than the tracked "
+            f"meshes (head {reference_extent_m:.3g} against {tracked_extent_m:.3g} m across): "
+            f"{_metric_one(tracked_extent_m, reference_extent_m)}"
         )
     else:
         cause = (
@@ -517,6 +520,60 @@ def fit_findings(
         return [Finding("fit-residual", "dataset", f"{facts}: {cause}")]
     items = tuple(item for f in bad for item in items_by_frame.get(f, []))
     return [Finding("fit-residual", "view", f"{facts}; other frames fit, so these meshes are wrong", items)]
+
+
+def _times(ratio: float) -> str:
+    """``ratio`` (or its inverse) as a factor, ``about 1000x`` when it is within 10 % of a unit change."""
+    factor = max(ratio, 1 / ratio)
+    for unit in (10.0, 100.0, 1000.0):
+        if abs(factor / unit - 1) < 0.1:
+            return f"about {unit:.0f}x"
+    return f"{factor:.0f}x"
+
+
+def _metric_one(tracked_m: float, template_m: float) -> str:
+    """Which of the tracked meshes and the template has a head's size in metres, and the fix."""
+    low, high = HEAD_SIZE_M
+    if low <= tracked_m <= high:
+        return "the meshes have a head's size in metres, so the template is not in metres — give it in metres"
+    if low <= template_m <= high:
+        return (
+            "the template has a head's size in metres, so the meshes are not — give them in metres (or "
+            "declare the units they are in)"
+        )
+    return "neither has a head's size in metres — give both in metres"
+
+
+def template_findings(subject: str, template_path, fit, accepted: tuple[str, ...]) -> list[Finding]:
+    """The user's template against the export's canonical shape (a
+    :class:`~relightanyone.ingest.tracking.TemplateFit`, or None when the template is the reference): a
+    template in other units, another vertex order or another frame than the tracking stops the ingest."""
+    if fit is None or "fit-residual" in accepted:
+        return []
+    facts = (
+        f"subject {subject}: the template {template_path} against the tracking's own shape {fit.reference}"
+    )
+    ratio = fit.extent_ratio
+    if ratio > 3 or ratio < 1 / 3:
+        cause = (
+            f"{facts}: the template is {_times(ratio)} {'larger' if ratio > 1 else 'smaller'}: "
+            "in mm? give the template in metres, like the tracking"
+        )
+    elif fit.rigid_rms_mm > FIT_RMS_MM:
+        cause = (
+            f"{facts}: {fit.rigid_rms_mm:.0f} mm RMS after the best rigid fit (limit {FIT_RMS_MM:.0f} mm): "
+            "another vertex order or topology — use the tracking's template (FLAME's for VHAP) in its own "
+            "vertex order (load OBJs without merging or reordering vertices)"
+        )
+    elif fit.direct_rms_mm > FIT_RMS_MM:
+        cause = (
+            f"{facts}: {fit.direct_rms_mm:.0f} mm RMS as given but {fit.rigid_rms_mm:.0f} mm once moved by "
+            f"{fit.offset_mm:.0f} mm / {fit.offset_deg:.0f}°: the template is in another frame — canonical "
+            "space is the tracking's, give the template in it"
+        )
+    else:
+        return []
+    return [Finding("fit-residual", "dataset", cause)]
 
 
 def extent(points: np.ndarray) -> float:
@@ -761,6 +818,12 @@ def mismatched_frames(shares_by_frame: dict[int, list[float]]) -> tuple[dict[int
     return bad, baseline
 
 
+def _most_frequent(problems: list[str]) -> str:
+    """The most frequent of ``problems`` without its ``subject … frame …:`` prefix."""
+    stripped = [p.split(": ", 1)[1] if p.startswith("subject ") and ": " in p else p for p in problems]
+    return max(sorted(set(stripped)), key=stripped.count)
+
+
 def view_item(view: SourceView) -> str:
     """The quarantine item of a view: ``subject/frame/camera/pattern``."""
     return f"{view.subject}/{view.frame:06d}/{view.camera.name}/{view.pattern}"
@@ -823,7 +886,8 @@ def check_subject(task, template, accepted: tuple[str, ...]) -> list[Finding]:
     if not cases:
         return []
     reference_extent = extent(template.vertices[head_mask])
-    findings = fit_findings(
+    findings = template_findings(plan.subject, template.path, task.template_fit, accepted)
+    findings += fit_findings(
         plan.subject, residuals, items_by_frame, tracked_extent, reference_extent, accepted
     )
     sizes = size_findings(
@@ -871,6 +935,8 @@ class ImageCheck:
         self._released: set[str] = set()
         self._refusals: list[tuple[str, str, str]] = []
         self._swaps: dict[tuple[int, str], str] = {}  # (frame, camera) -> the problem its partner named
+        self._judged: dict[str, int] = {}  # camera -> views judged
+        self._withdrawn: dict[str, str] = {}  # camera (or "" for the whole subject) -> reason
 
     def holds(self, view: SourceView, item: str, image: np.ndarray) -> bool:
         """Judge ``image (H, W, 3)`` of ``view``; True when it is held back."""
@@ -911,6 +977,7 @@ class ImageCheck:
         if verdict.share is None:
             return False
         self._shares.setdefault(view.frame, []).append(verdict.share)
+        self._judged[view.camera.name] = self._judged.get(view.camera.name, 0) + 1
         if verdict.swapped_with is not None:
             self._swaps[(view.frame, verdict.swapped_with)] = verdict.problem
         swapped = self._swaps.get((view.frame, view.camera.name))
@@ -923,7 +990,77 @@ class ImageCheck:
 
     def decide(self) -> tuple[list[tuple[str, str, str]], list[SourceView]]:
         """After every view was judged: ``(item, source, reason)`` of the held views to refuse, and the
-        held views to release."""
+        held views to release. Failures on more than :data:`SUBJECT_SHARE` of the subject's judged views
+        refuse the whole subject, and a camera whose views all fail or agree poorly (at least half fail)
+        is refused as a whole: one wrong calibration or a tracking of other images shows in every view,
+        whatever each view's own verdict guessed (:meth:`withdrawn` then names the views already
+        written)."""
+        refusals, released = self._view_decisions()
+        judged = sum(self._judged.values())
+        problems = {item: reason for item, _, reason in refusals}
+        if judged >= MIN_SUBJECT_VIEWS and len(problems) > SUBJECT_SHARE * judged:
+            reason = self._subject_reason(len(problems), judged, list(problems.values()))
+            self._withdrawn = {"": reason}
+            return [(item, view.source, reason) for view, item, _ in self._held], []
+        by_camera: dict[str, list[str]] = {}
+        for view, item, _ in self._held:
+            by_camera.setdefault(view.camera.name, []).append(item)
+        for camera, items in by_camera.items():
+            failing = [problems[i] for i in items if i in problems and FRAME_MISMATCH not in problems[i]]
+            # Every judged view of the camera was held (none agreed well) and at least half failed.
+            if (
+                len(items) >= 2
+                and len(items) == self._judged.get(camera, 0)
+                and 2 * len(failing) >= len(items)
+            ):
+                self._withdrawn[camera] = self._camera_reason(camera, len(failing), len(items), failing)
+        if self._withdrawn:
+            camera_of = {item: view.camera.name for view, item, _ in self._held}
+            refusals = [
+                (item, source, self._withdrawn.get(camera_of[item], reason))
+                for item, source, reason in refusals
+            ]
+            refusals += [
+                (view_item(v), v.source, self._withdrawn[v.camera.name])
+                for v in released
+                if v.camera.name in self._withdrawn
+            ]
+            released = [v for v in released if v.camera.name not in self._withdrawn]
+        return refusals, released
+
+    def withdrawn(self) -> dict[str, str]:
+        """After :meth:`decide`: item -> reason of every view of the subject (any pattern, any frame) that
+        a subject- or camera-wide failure refuses, including views already written."""
+        if not self._withdrawn:
+            return {}
+        whole = self._withdrawn.get("")
+        return {
+            view_item(v): whole or self._withdrawn[v.camera.name]
+            for v in self.task.plan.views
+            if whole is not None or v.camera.name in self._withdrawn
+        }
+
+    def _subject_reason(self, failing: int, judged: int, problems: list[str]) -> str:
+        subject = self.task.plan.subject
+        shares = [s for frame in self._shares.values() for s in frame]
+        return (
+            f"subject {subject}: {failing} of {judged} judged views disagree with the tracked mesh (median "
+            f"{float(np.median(shares)):.0%} of the projected head on the image's foreground), so every view "
+            "of the subject is refused: the tracking is not of these images (another sequence: --sequence; "
+            "another subject) or the whole rig's calibration is read wrongly; most frequent view finding: "
+            f"{_most_frequent(problems)}"
+        )
+
+    def _camera_reason(self, camera: str, failing: int, held: int, problems: list[str]) -> str:
+        return (
+            f"subject {self.task.plan.subject} camera {camera}: {failing} of its {held} judged views fail and "
+            "none agrees well with the tracked mesh, so all its views are refused: a fault of the camera "
+            f"itself (its calibration, or the names of its images) — fix camera {camera}; most frequent "
+            f"finding: {_most_frequent(problems)}"
+        )
+
+    def _view_decisions(self) -> tuple[list[tuple[str, str, str]], list[SourceView]]:
+        """:meth:`decide` for each held view on its own."""
         subject = self.task.plan.subject
         bad, baseline = mismatched_frames(self._shares)
         refusals, released = [], []
@@ -940,8 +1077,8 @@ class ImageCheck:
                     (
                         item,
                         view.source,
-                        f"subject {subject} frame {view.frame}: the tracked mesh disagrees with the frame's "
-                        f"images (median {bad[view.frame]:.0%} of the projected head on the foreground, "
+                        f"subject {subject} frame {view.frame}: {FRAME_MISMATCH} "
+                        f"(median {bad[view.frame]:.0%} of the projected head on the foreground, "
                         f"{baseline:.0%} in the subject's frames): the mesh of another frame or head pose? "
                         "— check the tracking's frame numbers",
                     )

@@ -187,6 +187,9 @@ def _adapter_command(spec: AdapterSpec, doctor: bool = False) -> click.Command:
             # workers' imports overlap the planning.
             ingest_executor(workers, executor).warm()
         plan = adapter.plan(src, options)
+        unmatched = options.unmatched()
+        if unmatched:
+            raise InputError(f"{src}: {'; '.join(unmatched)}")
         tracking_options = TrackingOptions(tracking_fps=tracking_fps, no_neck_mask=no_neck_mask)
         prepared = prepare(
             plan,

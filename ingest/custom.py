@@ -33,6 +33,7 @@ import numpy as np
 
 from relightanyone.align.colour import colour_matrix_problem
 from relightanyone.format.schema import check_name
+from relightanyone.ingest.calibration import loads_json
 from relightanyone.ingest.decode import header_size
 from relightanyone.ingest.records import (
     AdapterOptions,
@@ -85,7 +86,7 @@ def read_cameras_json(path: Path) -> tuple[dict[str, NativeCamera], dict, float]
     if not path.is_file():
         raise LayoutError(f"{path} is missing: a custom capture needs cameras.json (see docs/ingest.md)")
     try:
-        document = json.loads(path.read_text())
+        document = loads_json(path.read_text())
     except json.JSONDecodeError as error:
         raise LayoutError(f"{path}: not valid JSON ({error})") from None
     if not isinstance(document, dict):

@@ -33,7 +33,7 @@ import numpy as np
 from relightanyone.align.colour import read_faceolat_colour_matrix
 from relightanyone.format.schema import check_name
 from relightanyone.ingest.adapter_common import adapter_plan
-from relightanyone.ingest.calibration import CalibrationError, downsample_factor
+from relightanyone.ingest.calibration import CalibrationError, downsample_factor, loads_json
 from relightanyone.ingest.decode import header_size
 from relightanyone.ingest.metashape import read_metashape_xml
 from relightanyone.ingest.records import (
@@ -95,7 +95,7 @@ class LightRig:
 
 def _load_json(path: Path, what: str):
     try:
-        return json.loads(path.read_text())
+        return loads_json(path.read_text())
     except FileNotFoundError:
         raise LayoutError(f"{path}: {what} not found") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as error:

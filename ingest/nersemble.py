@@ -48,6 +48,7 @@ from relightanyone.ingest.calibration import (
     Downscale,
     downsample_factor,
     from_nersemble_params,
+    loads_json,
 )
 from relightanyone.ingest.records import (
     AdapterOptions,
@@ -186,7 +187,7 @@ def read_rig(
     if not Path(path).is_file():
         raise CalibrationError(path, "<file>", "calibration file not found")
     try:
-        data = json.loads(Path(path).read_text())
+        data = loads_json(Path(path).read_text())
     except (OSError, json.JSONDecodeError, UnicodeDecodeError) as error:
         raise CalibrationError(path, "<file>", f"not readable JSON ({error})") from None
     if not isinstance(data, dict):

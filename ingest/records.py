@@ -203,12 +203,30 @@ class AdapterOptions:
     # (width, height) of the sensor the calibration's K describes, when the layout does not say it and it
     # is not the dataset's usual sensor (Ava-256: 2668x4096; NeRSemble: the file's width/height or 2200x3208)
     sensor_size: tuple[int, int] | None = None
+    # Names the adapter asked about ("subjects"/"cameras" -> names), so a selection that matches nothing
+    # can be named (:meth:`unmatched`).
+    asked: dict = field(default_factory=dict, compare=False, repr=False, hash=False)
 
     def keeps_subject(self, subject: str) -> bool:
+        self.asked.setdefault("subjects", set()).add(subject)
         return self.subjects is None or subject in self.subjects
 
     def keeps_camera(self, camera: str) -> bool:
+        self.asked.setdefault("cameras", set()).add(camera)
         return self.cameras is None or camera in self.cameras
+
+    def unmatched(self) -> list[str]:
+        """After planning: one line per ``--subjects``/``--cameras`` name the capture does not have, with
+        the names it has."""
+        lines = []
+        for flag, selected in (("subjects", self.subjects), ("cameras", self.cameras)):
+            known = self.asked.get(flag, set())
+            missing = sorted(set(selected or ()) - known)
+            if missing and known:
+                names = sorted(known)
+                listed = ", ".join(names[:12]) + (f" … and {len(names) - 12} more" if len(names) > 12 else "")
+                lines.append(f"--{flag}: {', '.join(missing)} not in the capture (it has {listed})")
+        return lines
 
     def keeps_frame(self, frame: int) -> bool:
         return self.frames is None or frame in self.frames

@@ -248,8 +248,9 @@ def plan_tasks(
             alignments,
             failures,
             pairing if tracking_dir is not None else "",
+            template_fit=template_fit,
         )
-        for subject, (alignments, failures, pairing) in zip(subjects, aligned, strict=True)
+        for subject, (alignments, failures, pairing, template_fit) in zip(subjects, aligned, strict=True)
     ]
     names = [t.task for t in tasks]
     if len(set(names)) != len(names):
@@ -504,7 +505,7 @@ def prepare(
     if preset not in PRESET_SIZES:
         raise ValueError(f"unknown preset {preset!r}; expected one of {', '.join(PRESET_SIZES)}")
     check_plan_names(plan)
-    if tracking_dir is None and not any(s.meshes for s in plan.subjects):
+    if tracking_dir is None and plan.view_count and not any(s.meshes for s in plan.subjects):
         raise InputError(
             f"{plan.source_root}: the {plan.layout} layout ships no tracked meshes; pass --tracking DIR "
             "(a VHAP export with <subject>/transforms.json)"
@@ -598,7 +599,9 @@ def nothing_to_write(plan: DatasetPlan, tasks: list[SubjectTask]) -> str | None:
     reasons = planning_reasons(plan) + alignment_failures(tasks)
     first = f"; first: {reasons[0]}" if reasons else ""
     what = (
-        "no view was found" if not plan.view_count else "no view belongs to a frame aligned with the tracking"
+        "no view was found (check --subjects, --cameras and --frames against the capture)"
+        if not plan.view_count
+        else "no view belongs to a frame aligned with the tracking"
     )
     return f"{plan.source_root}: nothing to write, {what} ({len(reasons)} refusals and failed frames{first})"
 

@@ -39,7 +39,7 @@ from relightanyone.align.chart import ChartNotFoundError, fit_chart_correction
 from relightanyone.align.colour import colour_matrix_problem
 from relightanyone.format.schema import check_name
 from relightanyone.ingest.adapter_common import adapter_plan
-from relightanyone.ingest.calibration import CalibrationError, from_colmap
+from relightanyone.ingest.calibration import CalibrationError, from_colmap, loads_json
 from relightanyone.ingest.decode import DecodeError, decode_bytes
 from relightanyone.ingest.records import (
     AdapterOptions,
@@ -75,7 +75,7 @@ def read_rig(src: Path) -> dict:
     if not path.is_file():
         return {}
     try:
-        rig = json.loads(path.read_text())
+        rig = loads_json(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise LayoutError(f"{path}: not valid JSON ({error})") from None
     if not isinstance(rig, dict):

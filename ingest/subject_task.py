@@ -36,6 +36,7 @@ from relightanyone.ingest.tracking import (
     AlignmentError,
     FrameAlignment,
     Template,
+    TemplateFit,
     load_template,
 )
 from relightanyone.render.mesh import read_obj_vertices
@@ -70,6 +71,7 @@ class SubjectTask:
     failures: dict[int, str]
     frame_pairing: str = ""  # how the tracking's timesteps pair with native frames (empty: shipped meshes)
     refused_views: dict[str, str] = field(default_factory=dict)  # item -> why a convention check refused it
+    template_fit: TemplateFit | None = None  # the template against the export's canonical shape
 
 
 @dataclass
@@ -229,8 +231,9 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
 
         # Rows of views the image check holds back, kept (up to HELD_ROWS_BYTES) so that a view it
         # releases is written without decoding its image again; the others are decoded again.
-        held_rows: dict[str, ImageRow] = {}
+        held_rows: dict[tuple[str, str], ImageRow] = {}  # (item, source) -> row
         held_bytes = 0
+        written: dict[str, tuple[str, str, int]] = {}  # item -> (row key, source, bytes)
         for view in image_check.passes(views, decoder.prefetch_videos):
             item = f"{plan.subject}/{view.frame:06d}/{view.camera.name}/{view.pattern}"
             if view.frame not in meshes:
@@ -242,7 +245,7 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
             if item in seen:
                 refuse(part, item, view.source, f"a second image for {item} (first one kept)", "plan")
                 continue
-            row = held_rows.pop(item, None)
+            row = held_rows.pop((item, view.source), None)
             if row is None:
                 try:
                     image, sha256 = decoder.decode(view.image)
@@ -260,15 +263,23 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
                 if held:
                     size = len(row.image) + len(row.mask) + len(row.valid)
                     if held_bytes + size <= HELD_ROWS_BYTES:
-                        held_rows[item] = row
+                        held_rows[(item, view.source)] = row
                         held_bytes += size
                     continue
             part.add(row)
             seen.add(item)
             result.rows += 1
             result.bytes += len(row.image) + len(row.mask)
+            written[item] = (row.key, view.source, len(row.image) + len(row.mask))
         for held_item, held_source, reason in image_check.refusals():
             refuse(part, held_item, held_source, f"check silhouette: {reason}", "check")
+        withdrawn = {item: reason for item, reason in image_check.withdrawn().items() if item in written}
+        part.withdraw({written[item][0] for item in withdrawn})
+        for item, reason in withdrawn.items():
+            _, source, size = written[item]
+            refuse(part, item, source, f"check silhouette: {reason}", "check")
+            result.rows -= 1
+            result.bytes -= size
     return result
 
 
@@ -294,4 +305,11 @@ def check_images(settings: IngestSettings, task: SubjectTask, frames: int | None
                 continue  # the ingest quarantines it with the decoder's reason
             check.holds(view, view_item(view), image)
     refused, _ = check.decide()
-    return [Finding("silhouette", "view", reason, (item,)) for item, _, reason in refused]
+    items_by_reason: dict[str, list[str]] = {}
+    judged: set[str] = set()
+    for item, reason in [*((i, r) for i, _, r in refused), *check.withdrawn().items()]:
+        if item not in judged:
+            judged.add(item)
+            items_by_reason.setdefault(reason, []).append(item)
+    # One finding per reason: a swapped pair, or a subject refused as a whole, is one line.
+    return [Finding("silhouette", "view", reason, tuple(items)) for reason, items in items_by_reason.items()]

@@ -484,6 +484,41 @@ def align_frame(
     )
 
 
+@dataclass(frozen=True)
+class TemplateFit:
+    """How the user's template compares with the export's own canonical shape (``canonical.obj``), vertex
+    by vertex above the neck line: both are the tracking's topology in its canonical frame, in metres, so
+    they differ only by the subject's shape. ``extent_ratio`` is the template's size over the shape's;
+    ``direct_rms_mm`` the RMS distance as given, ``rigid_rms_mm`` after the best rigid fit, which moves the
+    template by ``offset_mm`` and ``offset_deg``."""
+
+    reference: str
+    extent_ratio: float
+    direct_rms_mm: float
+    rigid_rms_mm: float
+    offset_mm: float
+    offset_deg: float
+
+
+def fit_template(template: Template, reference: np.ndarray, reference_path: Path) -> TemplateFit:
+    """:class:`TemplateFit` of ``template`` against ``reference (V, 3)`` (read from ``reference_path``)."""
+    head = ~template.neck_vertices if (~template.neck_vertices).sum() >= 3 else np.ones(len(reference), bool)
+    ours, theirs = template.vertices[head], reference[head]
+    size = float(np.ptp(theirs, axis=0).max())
+    ratio = float(np.ptp(ours, axis=0).max()) / max(size, 1e-12)
+    T, rigid_rms_mm = fit_canonical_from_tracker(template.vertices, reference, head)
+    direct = np.sqrt(np.mean(np.sum((ours - theirs) ** 2, axis=1))) * 1000.0
+    return TemplateFit(
+        reference=str(reference_path),
+        extent_ratio=ratio,
+        direct_rms_mm=float(direct),
+        rigid_rms_mm=rigid_rms_mm,
+        offset_mm=float(np.linalg.norm(transform_points(T, ours.mean(axis=0)[None])[0] - ours.mean(axis=0)))
+        * 1000.0,
+        offset_deg=rotation_angle_deg(T[:3, :3], np.eye(3)),
+    )
+
+
 def subject_reference(vhap: VhapSubject, template: Template) -> np.ndarray:
     """``(V, 3)`` the shape the tracked meshes are registered to: the export's ``canonical.obj`` when it
     has one with the template's vertex count, else the template."""
@@ -508,9 +543,10 @@ def align_subject(
     template: Template,
     clock: tuple[float | None, int | None] = (None, None),
     options: TrackingOptions | None = None,
-) -> tuple[dict[int, FrameAlignment], dict[int, str], str]:
+) -> tuple[dict[int, FrameAlignment], dict[int, str], str, TemplateFit | None]:
     """Align every frame of a subject: ``({frame: FrameAlignment}, {frame: reason it failed}, how the
-    tracked timesteps pair with native frames)``.
+    tracked timesteps pair with native frames, the template against the export's canonical shape or None
+    when the template itself is the reference)``.
 
     ``native_w2c_by_frame``: frame -> camera name -> native ``w2c (4, 4)`` (metres, head pose folded).
     ``tracking``: the subject's VHAP export folder, or an already built :class:`VhapSubject`.
@@ -525,11 +561,16 @@ def align_subject(
     except TrackingMismatchError:
         raise
     except (OSError, ValueError, KeyError) as error:
-        return {}, {frame: f"subject {subject}: {error}" for frame in native_w2c_by_frame}, ""
+        return {}, {frame: f"subject {subject}: {error}" for frame in native_w2c_by_frame}, "", None
     reference = subject_reference(vhap, template)
+    template_fit = None
+    if reference is not template.vertices:
+        # The fits below use the export's shape, so nothing else would notice a template in other units,
+        # another vertex order or another frame.
+        template_fit = fit_template(template, reference, vhap.canonical_mesh)
     for frame, native in sorted(native_w2c_by_frame.items()):
         try:
             alignments[frame] = align_frame(subject, frame, native, vhap, template, reference)
         except AlignmentError as error:
             failures[frame] = str(error)
-    return alignments, failures, vhap.mapping.evidence
+    return alignments, failures, vhap.mapping.evidence, template_fit

@@ -130,13 +130,18 @@ def _write_overlay(datasets: list, out: Path, samples: int) -> None:
         except (FileNotFoundError, KeyError) as error:
             click.echo(f"no overlay for {dataset.path}: {error}", err=True)
             continue
+        if not tiles:
+            click.echo(f"no overlay for {dataset.path}: it has no image rows to draw", err=True)
+            continue
         side = max(t.shape[0] for t in tiles)
         tiles = [cv2.resize(t, (side, side), interpolation=cv2.INTER_AREA) for t in tiles]
         rows.append(
             np.concatenate(tiles + [np.zeros_like(tiles[0])] * (min(samples, 8) - len(tiles)), axis=1)
         )
     if not rows:
-        raise click.ClickException("no dataset in PATH was written by ingest (template.obj and meshes.arrow)")
+        raise click.ClickException(
+            "no overlay to draw: no dataset in PATH has image rows with their template.obj and meshes.arrow"
+        )
     width = max(r.shape[1] for r in rows)
     sheet = np.concatenate([np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows], axis=0)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -228,6 +228,15 @@ class PartWriter:
         self._keys.append(row.key)
         self._key_set.add(row.key)
 
+    def withdraw(self, keys: set[str]) -> None:
+        """Leave the rows of ``keys`` out of the part (their bytes stay in the part's file until the commit,
+        which copies only the rows listed)."""
+        kept = [i for i, key in enumerate(self._keys) if key not in keys]
+        self._keys = [self._keys[i] for i in kept]
+        self._index = [self._index[i] for i in kept]
+        self._images.offsets = [self._images.offsets[i] for i in kept]
+        self._key_set -= keys
+
     def add_mesh(self, mesh: MeshRow) -> None:
         """Add the tracked mesh of one (subject, frame)."""
         if mesh.key in self._meshes:
