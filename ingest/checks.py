@@ -73,7 +73,10 @@ FRAME_MARGIN = 0.03
 ALTERNATIVE_AGREEMENT = 0.9  # an alternative (flip, another camera) explains the image from this agreement
 ALTERNATIVE_GAIN = 0.15  # ... and when it is this much better than the view as given
 FLIP_OVERLAP = 0.8  # a flipped image explains a view when the mesh's outline overlaps its foreground so
+FLIP_SHARE_GAIN = 0.08  # ... or when turning it back puts this much more of the head on the foreground
+FLIP_OUTLINE_GAIN = 0.04  # ... and improves the outline's overlap by this much
 MIN_MASK_PIXELS = 12  # fewer projected pixels than this: too small to judge
+BORDER_BACKGROUND_SHARE = 0.5  # ... of the whole border, when the border away from the head is not uniform
 BORDER_UNIFORM = 0.04  # border pixels within this of their median (relative to the image's peak): uniform
 # Foreground: farther from the background than this share of the image's peak, and than this many times
 # the border's own spread (its noise), whichever is more (dark skin and hair are a few % of the peak).
@@ -601,18 +604,31 @@ def image_foreground(image: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
     ring = np.zeros((h, w), dtype=bool)
     ring[:2], ring[-2:], ring[:, :2], ring[:, -2:] = True, True, True, True
     near = cv2.dilate(mask.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
-    border = image[ring & ~near]
-    if len(border) < 16:
-        return None
     peak = quantile(channel_max(image).ravel(), 0.99)
-    middle = (len(border) - 1) // 2
-    background = np.partition(border, middle, axis=0)[middle].astype(np.float32)  # per-channel median
-    spread = np.abs(border - background).max(axis=1)
-    noise = quantile(spread, 0.8)
-    if peak <= 0 or noise > BORDER_UNIFORM * peak:
+    if peak <= 0:
         return None
+    estimate = _uniform_background(image[ring & ~near], peak, 0.8)
+    if estimate is None:
+        # The head may reach the border where the mesh says it does not (a flipped image, another
+        # camera's view): then the background is the colour most of the whole border has.
+        estimate = _uniform_background(image[ring], peak, BORDER_BACKGROUND_SHARE)
+    if estimate is None:
+        return None
+    background, noise = estimate
     threshold = max(FOREGROUND_CONTRAST * peak, BACKGROUND_NOISE_FACTOR * noise)
     return channel_max(cv2.absdiff(image, np.full_like(image, background))) > threshold
+
+
+def _uniform_background(border: np.ndarray, peak: float, share: float) -> tuple[np.ndarray, float] | None:
+    """``(colour (3,), noise)`` of the background when the ``share`` quantile of the ``border (N, 3)``
+    pixels' distance to their median colour (the noise) is within :data:`BORDER_UNIFORM` of the image's
+    ``peak``, else None."""
+    if len(border) < 16:
+        return None
+    middle = (len(border) - 1) // 2
+    background = np.partition(border, middle, axis=0)[middle].astype(np.float32)  # per-channel median
+    noise = quantile(np.abs(border - background).max(axis=1), share)
+    return None if noise > BORDER_UNIFORM * peak else (background, noise)
 
 
 def channel_max(image: np.ndarray) -> np.ndarray:
@@ -727,7 +743,8 @@ def check_view_image(
     foreground = image_foreground(small, whole)
     if foreground is None:
         return ViewVerdict(camera, None)
-    share = on_foreground(foreground, silhouette.mask(K_small, w2c, size))
+    head = silhouette.mask(K_small, w2c, size)
+    share = on_foreground(foreground, head)
     if share is None:
         return ViewVerdict(camera, share)
     # The whole mesh's outline against the foreground, as given and flipped: a flip shows as a much
@@ -739,11 +756,17 @@ def check_view_image(
         "flipped vertically": foreground[::-1],
         "mirrored left-right": foreground[:, ::-1],
     }
-    if overlap > 1.0 - ALTERNATIVE_GAIN:
-        flips = {}  # no flip can do better by ALTERNATIVE_GAIN
+    if overlap > 1.0 - ALTERNATIVE_GAIN and share >= SUSPECT_ON_FOREGROUND:
+        flips = {}  # no flip can do better
     for what, flipped in flips.items():
         score = overlap_ratio(flipped, whole)
-        if score >= FLIP_OVERLAP and score >= overlap + ALTERNATIVE_GAIN:
+        # A much better outline; or, when the head is framed so that its outline changes little under a
+        # flip, the head lying wholly on the foreground once turned back (and the outline better too).
+        if (score >= FLIP_OVERLAP and score >= overlap + ALTERNATIVE_GAIN) or (
+            share < SUSPECT_ON_FOREGROUND
+            and score >= overlap + FLIP_OUTLINE_GAIN
+            and (on_foreground(flipped, head) or 0.0) >= max(SUSPECT_ON_FOREGROUND, share + FLIP_SHARE_GAIN)
+        ):
             return ViewVerdict(
                 camera,
                 share,

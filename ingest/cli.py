@@ -214,6 +214,9 @@ def _adapter_command(spec: AdapterSpec, doctor: bool = False) -> click.Command:
         checks.raise_for_stops(str(src), listed=True)
         if doctor or dry_run:
             click.echo("dry run: nothing written" if dry_run else "doctor: nothing written")
+            if doctor and checks.findings:
+                # Any finding fails the command, so a script can gate an ingest on a clean doctor run.
+                click.get_current_context().exit(1)
             return
         summary = ingest_dataset(
             plan,
@@ -237,7 +240,8 @@ def _adapter_command(spec: AdapterSpec, doctor: bool = False) -> click.Command:
     if doctor:
         command.help = (
             f"Check a {command_name} capture at SRC for convention mistakes (cameras, units, images) with the "
-            "arguments ingest takes, reading every image once; write nothing. Exits 1 on a dataset-level mistake."
+            "arguments ingest takes, reading every image once; write nothing. Exits 1 on any finding: a dataset-level mistake, or views the "
+            "ingest would quarantine."
         )
     return command
 

@@ -186,3 +186,18 @@ def test_parts_from_worker_processes_give_the_bytes_of_a_sequential_run(tmp_path
         writer.commit()
         digests.append(_digests(tmp_path / run / "demo"))
     assert digests[0] == digests[1] and len(digests[0]) >= 4
+
+
+def test_withdrawn_rows_are_left_out_of_the_commit(tmp_path):
+    writer = ShardWriter(tmp_path / "demo", _info())
+    writer.begin()
+    rows = example_rows("demo", ("s000",), 3, ("full",))
+    with writer.part("s000") as part:
+        for row in rows:
+            part.add(row)
+        part.withdraw({rows[1].key})
+        part.add(rows[1])  # a withdrawn key is free again
+        part.withdraw({rows[0].key, rows[1].key})
+    writer.commit()
+    dataset = NormalizedDataset(tmp_path / "demo")
+    assert dataset.keys == [rows[2].key] and dataset.row(rows[2].key).image == rows[2].image

@@ -304,7 +304,7 @@ def test_doctor_lists_view_findings(capture, tmp_path):
     path = capture / "images" / "s1" / "000002" / "c1.png"
     cv2.imwrite(str(path), cv2.imread(str(path))[::-1])
     result = run("doctor", "custom", capture)
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 1, result.output  # any finding fails the doctor
     assert "camera c1 is flipped vertically relative to its mask" in result.output
     assert "doctor: nothing written" in result.output
 
@@ -447,3 +447,87 @@ def test_cameras_that_do_not_surround_the_head_name_the_convention():
         cases.append(CameraCase((f"v{k}",), f"c{k}", K, np.linalg.inv(w2c), 96, 128, head))
     [finding] = surround_findings(cases, "s", ())
     assert finding.scope == "dataset" and "camera-to-world matrices" in finding.message, finding.message
+
+
+# ------------------------------------------------------------------------ failures of more than a view
+def move_meshes(capture: Path, offset: tuple[float, float, float]) -> None:
+    """Every frame's mesh moved by ``offset`` (m) in the capture's world: the tracking of other images
+    (another sequence of the subject, the head a few centimetres elsewhere)."""
+    for path in sorted((capture / "meshes").rglob("*.obj")):
+        vertices, faces = read_obj(path)
+        write_obj(path, vertices + np.asarray(offset), faces)
+
+
+def test_tracking_of_other_images_refuses_the_whole_subject(capture, tmp_path):
+    move_meshes(capture, (0.06, 0.0, 0.04))
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 1 and "no row was written" in result.output, result.output
+    refused = quarantine(tmp_path / "out")
+    assert len(refused) == 15
+    assert all("the tracking is not of these images" in e["reason"] for e in refused)
+    assert all("--sequence" in e["reason"] and e["stage"] == "check" for e in refused)
+    # A dataset without rows has nothing to overlay: said in one line, no traceback.
+    overlay = run("inspect", tmp_path / "out" / "custom", "--overlay", tmp_path / "overlay.png")
+    assert overlay.exit_code == 1 and "has no image rows to draw" in overlay.output
+    assert "Traceback" not in overlay.output
+
+
+def test_a_camera_wrong_in_every_frame_is_refused_as_a_whole(capture, tmp_path):
+    """c3's rotation is 6 degrees off: it still faces the head, so only its images show the fault, in
+    every frame, whatever each view's own verdict guesses."""
+    path = capture / "cameras.json"
+    document = json.loads(path.read_text())
+    angle = np.radians(6.0)
+    turn = np.eye(4)
+    turn[:3, :3] = [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]]
+    document["cameras"]["c3"]["w2c"] = (turn @ np.array(document["cameras"]["c3"]["w2c"])).tolist()
+    path.write_text(json.dumps(document))
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    refused = {e["item"]: e["reason"] for e in quarantine(tmp_path / "out")}
+    assert set(refused) == {f"s1/00000{f}/c3/full" for f in range(3)}
+    assert all("camera c3" in r and "a fault of the camera itself" in r for r in refused.values())
+    assert len(NormalizedDataset(tmp_path / "out" / "custom")) == 12
+
+
+def test_an_image_of_another_camera_in_a_second_file_is_not_written_for_the_first(capture, tmp_path):
+    """Two files for one view (``c0.png`` and ``c0.jpg``, the second showing c2's view): the first in
+    order is kept, and its own row is the one written."""
+    folder = capture / "images" / "s1" / "000000"
+    cv2.imwrite(str(folder / "c0.jpg"), cv2.imread(str(folder / "c2.png")), [cv2.IMWRITE_JPEG_QUALITY, 100])
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    dataset = NormalizedDataset(tmp_path / "out" / "custom")
+    row = dataset.row(next(k for k in dataset.keys if "/000000/c0/" in k))
+    [entry] = [e for e in quarantine(tmp_path / "out") if e["item"] == "s1/000000/c0/full"]
+    assert row.source != entry["source"]
+    assert row.source.endswith(("c0.png", "c0.jpg")) and entry["source"].endswith(("c0.png", "c0.jpg"))
+
+
+def test_selections_that_match_nothing_and_duplicate_cameras_are_named(capture, tmp_path):
+    result = ingest_custom(capture, tmp_path / "out", "--cameras", "c1,nosuch", "--dry-run")
+    assert result.exit_code == 1
+    assert "--cameras: nosuch not in the capture (it has c0, c1, c2, c3, c4)" in result.output
+    result = ingest_custom(capture, tmp_path / "out", "--frames", "7", "--dry-run")
+    assert (
+        result.exit_code == 1
+        and "no view was found (check --subjects, --cameras and --frames" in result.output
+    )
+    path = capture / "cameras.json"
+    text = path.read_text()
+    path.write_text(text.replace('"cameras": {', '"cameras": {"c1": {}, ', 1))
+    result = ingest_custom(capture, tmp_path / "out", "--dry-run")
+    assert result.exit_code == 1 and "key 'c1' appears twice" in result.output and str(path) in result.output
+
+
+def test_background_is_found_when_the_head_reaches_the_border_away_from_its_mask():
+    from relightanyone.ingest.checks import image_foreground
+
+    image = np.zeros((40, 30, 3), np.float32)
+    image[10:30, 0:12] = 0.6  # the head, touching the left border
+    expected = np.zeros((40, 30), bool)
+    expected[10:30, 18:30] = True  # where the mesh says it is: the image is mirrored
+    foreground = image_foreground(image, expected)
+    assert foreground is not None and foreground.sum() == 20 * 12 and foreground[10:30, 0:12].all()
+    image[:, :, 1] = np.linspace(0, 0.5, 30)[None]  # a border with no dominant colour: cannot tell
+    assert image_foreground(image, expected) is None

@@ -178,3 +178,51 @@ def test_timestep_mapping_rules(timesteps, fps, rate, count, native_of_last, err
     else:
         mapping = timestep_mapping(timesteps, None, rate, count, options, "transforms.json")
         assert mapping.native(timesteps[-1]) == native_of_last
+
+
+def changed_template(world: Path, folder: Path, change: str) -> Path:
+    """The world's template (and neck mask) rewritten in ``folder``: in mm, in a shuffled vertex order, or
+    moved 10 cm, as a user's template may disagree with the tracking's own ``canonical.obj``."""
+    from relightanyone.ingest.tracking import load_template
+    from relightanyone.synth.template import write_obj
+
+    loaded = load_template(template(world))
+    vertices, faces, neck = loaded.vertices, loaded.faces, loaded.neck_vertices
+    if change == "mm":
+        vertices = vertices * 1000.0
+    elif change == "order":
+        order = np.random.default_rng(0).permutation(len(vertices))  # new vertex i is old order[i]
+        inverse = np.argsort(order)
+        vertices, faces, neck = vertices[order], inverse[faces], neck[order]
+    else:
+        vertices = vertices + [0.0, 0.10, 0.0]
+    folder.mkdir(parents=True)
+    write_obj(folder / "template.obj", vertices, faces)
+    (folder / "neck_mask.txt").write_text("".join(f"{int(v)}\n" for v in neck))
+    return folder / "template.obj"
+
+
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        ("mm", "about 1000x larger: in mm?"),
+        ("order", "another vertex order or topology"),
+        ("frame", "the template is in another frame"),
+    ],
+)
+def test_template_that_disagrees_with_the_exports_shape_stops(world, tmp_path, change, words):
+    """The frames are fitted to the export's ``canonical.obj``, so the template is compared with it."""
+    assert any((p / "canonical.obj").is_file() for p in (world / "tracking" / "d4").iterdir())
+    path = changed_template(world, tmp_path / "template", change)
+    out = tmp_path / "out"
+    args = ["ingest", "nersemble", str(world / "nersemble"), "--tracking", str(world / "tracking" / "d4"),
+            "--out", str(out), "--preset", "tiny", "--template", str(path)]  # fmt: skip
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 1, result.output
+    finding = next(line for line in result.output.splitlines() if "check fit-residual" in line)
+    assert words in finding and "canonical.obj" in finding and str(path) in finding
+    assert not out.exists()
+    # The template the world ships passes.
+    args[-1] = str(template(world))
+    clean = CliRunner().invoke(cli, [*args, "--dry-run"])
+    assert clean.exit_code == 0 and "convention checks: all passed" in clean.output, clean.output
