@@ -25,8 +25,9 @@ Conventions:
 * Colour: v2's CCM acts on linear light after the video's sRGB decoding (codec ``mp4-frame``),
   ``ColourCalibration`` space ``"linear"``; v1's affine ``rgb @ A[:3, :3] + A[:3, 3]`` acts on the
   sRGB-encoded PNG values (row vectors, so the matrix is stored transposed), space ``"display"``.
-* Sequence: ``AdapterOptions.sequence``, else the first sequence other than ``BACKGROUND`` in sorted
-  order that holds images. Frames: ``AdapterOptions.frames``, else every frame of the sequence.
+* Sequence: ``AdapterOptions.sequence`` (its full name, or the part before the description: ``EMO-1``
+  for ``EMO-1-shout+laugh``), else the one sequence other than ``BACKGROUND`` that holds images; with
+  several, the participant is refused until ``--sequence`` chooses. Frames: ``AdapterOptions.frames``, else every frame of the sequence.
 * Refused, not guessed: a participant whose calibration or colour file is missing or invalid, a camera
   without colour calibration, an unreadable video, a frame past the end of a camera's video, a missing
   PNG, a calibrated serial without a video (or PNG folder) and a video of a serial the calibration lacks.
@@ -119,17 +120,34 @@ def detect(src: Path) -> str:
     )
 
 
-def choose_sequence(folder: Path, version: str, wanted: str | None) -> str | None:
-    """The sequence to ingest: ``wanted`` when present, else the first non-BACKGROUND one holding images."""
+def choose_sequence(folder: Path, version: str, wanted: str | None) -> tuple[str | None, str]:
+    """``(the sequence to ingest, or None, why none)``: ``wanted`` by its full name or by the part before
+    its description (``EMO-1`` for ``EMO-1-shout+laugh``, as tracking exports name it) when that names one
+    sequence; without ``wanted``, the one non-BACKGROUND sequence holding images (several need a choice)."""
     pattern = "images/cam_*.mp4" if version == "v2" else f"frame_*/{V1_IMAGE_DIR}"
     names = sorted(
         p.name
         for p in (folder / "sequences").glob("*")
         if p.is_dir() and p.name != BACKGROUND and any(p.glob(pattern))
     )
-    if wanted is not None:
-        return wanted if wanted in names else None
-    return names[0] if names else None
+    listed = ", ".join(names[:8]) + (f" … and {len(names) - 8} more" if len(names) > 8 else "")
+    if not names:
+        return None, "no sequence other than BACKGROUND holds images"
+    if wanted is None:
+        if len(names) == 1:
+            return names[0], ""
+        return None, f"{len(names)} sequences hold images ({listed}): pass --sequence NAME to choose one"
+    if wanted in names:
+        return wanted, ""
+    matches = [n for n in names if n.startswith(f"{wanted}-")]
+    if len(matches) == 1:
+        return matches[0], ""
+    if matches:
+        return (
+            None,
+            f"--sequence {wanted} names {len(matches)} sequences ({', '.join(matches)}): give the full name",
+        )
+    return None, f"no sequence {wanted} with images (sequences: {listed})"
 
 
 def video_info(path: Path) -> tuple[int, int, int, float | None]:
@@ -459,17 +477,10 @@ def plan(src: Path, options: AdapterOptions) -> DatasetPlan:
             continue
         subject_plan = SubjectPlan(subject=subject, split=options.split_of(subject), views=[])
         subjects.append(subject_plan)
-        sequence = choose_sequence(folder, version, options.sequence)
+        sequence, why = choose_sequence(folder, version, options.sequence)
         if sequence is None:
-            wanted = (
-                f"sequence {options.sequence}" if options.sequence else "a sequence other than BACKGROUND"
-            )
             subject_plan.refusals.append(
-                Refusal(
-                    subject,
-                    folder.relative_to(src).as_posix() if folder != src else ".",
-                    f"no {wanted} with images",
-                )
+                Refusal(subject, folder.relative_to(src).as_posix() if folder != src else ".", why)
             )
             continue
         sequences[subject] = sequence

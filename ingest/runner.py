@@ -184,6 +184,19 @@ def check_tracking_dir(tracking_dir: Path, subjects: list[str]) -> None:
         p.name for p in tracking_dir.iterdir() if p.is_dir() and any((p / s).is_dir() for s in subjects)
     )
     hint = f"; the subjects are under {tracking_dir}/{nested[0]}, pass that folder" if nested else ""
+    # VHAP names an export after the participant and sequence (074_EMO-1_v16_DS4_...).
+    named = sorted(
+        p.name
+        for p in tracking_dir.iterdir()
+        if p.is_dir() and any(p.name.startswith(f"{s}_") for s in subjects)
+    )
+    if named and not nested:
+        hint = (
+            f"; {tracking_dir} holds exports named after a sequence ({', '.join(named[:3])}"
+            f"{' ...' if len(named) > 3 else ''}): link the one of the ingested sequence as "
+            f"{tracking_dir}/<subject> (e.g. ln -s {named[0]} {tracking_dir}/{named[0].split('_')[0]}), "
+            "or pass a folder that holds such links"
+        )
     raise FileNotFoundError(
         f"{tracking_dir} has no <subject>/{TRANSFORMS_NAME} for any of the subjects "
         f"({', '.join(subjects[:5])}{' ...' if len(subjects) > 5 else ''}){hint}"
@@ -561,7 +574,10 @@ def found_lines(
         tracking,
         *_listed(alignment_failures(tasks), limit),
         *fit_residual_lines(report),
-        *[f"  tracking frames: {p}" for p in sorted({t.frame_pairing for t in tasks if t.frame_pairing})],
+        *[
+            f"  tracking frames: {p}"
+            for p in sorted({t.frame_pairing for t in tasks if t.frame_pairing and t.plan.views})
+        ],
     ]
     worst = sorted(report["cameras"].items(), key=lambda item: -item[1]["centre_mm"])
     for camera, entry in worst[:5]:
@@ -598,11 +614,12 @@ def nothing_to_write(plan: DatasetPlan, tasks: list[SubjectTask]) -> str | None:
         return unplaceable
     reasons = planning_reasons(plan) + alignment_failures(tasks)
     first = f"; first: {reasons[0]}" if reasons else ""
-    what = (
-        "no view was found (check --subjects, --cameras and --frames against the capture)"
-        if not plan.view_count
-        else "no view belongs to a frame aligned with the tracking"
-    )
+    if plan.view_count:
+        what = "no view belongs to a frame aligned with the tracking"
+    elif reasons:
+        what = "no view was planned"
+    else:
+        what = "no view was found (check --subjects, --cameras and --frames against the capture)"
     return f"{plan.source_root}: nothing to write, {what} ({len(reasons)} refusals and failed frames{first})"
 
 
