@@ -129,7 +129,7 @@ def detect_colorchecker(image_linear: np.ndarray) -> ChartDetection:
     if not detector.process(_detection_image_bgr8(image), 1):
         raise ChartNotFoundError(
             "no ColorChecker 24 found; make sure the whole chart is visible, in focus and at least "
-            "~200 px wide, or pass a crop around it"
+            "~200 px wide in the chart image (re-shoot it closer, or crop the chart image file around it)"
         )
     checker = detector.getBestColorChecker()
     corners = np.asarray(checker.getColorCharts(), dtype=np.float64).reshape(-1, 4, 2)

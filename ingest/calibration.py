@@ -515,13 +515,31 @@ def downsample_factor(
                 f"sensor, pass {option} WxH"
             )
     centre = np.median(np.asarray(K_sensor, dtype=np.float64).reshape(-1, 3, 3)[:, :2, 2], axis=0)
-    offset = np.abs(centre - (np.array([sensor_w, sensor_h]) - 1.0) / 2.0)
-    if (offset > np.array([sensor_w, sensor_h]) / 6.0).any():
-        suggested = np.maximum(np.round(2.0 * centre + 1.0), 1).astype(int)
+    if not _centred(centre, (sensor_w, sensor_h)):
+        # Sensors the images are an integer downscale of, whose middle third holds the principal points.
+        fitting = [
+            (width * k, height * k)
+            for k in (1, 2, 3, 4, 6, 8, 16, 32)
+            if _centred(centre, (width * k, height * k))
+        ]
+        if fitting:
+            own = (
+                " (the images' own size: K is already in their pixels)"
+                if fitting[0] == (width, height)
+                else ""
+            )
+            suggestion = f"they fit a sensor of {fitting[0][0]}x{fitting[0][1]}{own}"
+        else:
+            suggestion = "they fit no integer multiple of the image size"
         raise InputError(
             f"the principal points (median ({centre[0]:.0f}, {centre[1]:.0f}) px) are far from the centre of "
-            f"the {sensor_text} sensor the calibration is read for, so its K cannot describe that sensor; they "
-            f"suggest a sensor of about {suggested[0]}x{suggested[1]}: pass {option} WxH with the size the "
-            f"calibration was made at"
+            f"the {sensor_text} sensor the calibration is read for, so its K cannot describe that sensor; "
+            f"{suggestion}: pass {option} WxH with the size the calibration was made at"
         )
     return Downscale(factor, (sensor_w, sensor_h), (width, height))
+
+
+def _centred(centre: np.ndarray, size: tuple[int, int]) -> bool:
+    """Whether the principal point ``centre (2,)`` lies in the middle third of a ``size`` (W, H) sensor."""
+    extent = np.asarray(size, dtype=np.float64)
+    return bool((np.abs(centre - (extent - 1.0) / 2.0) <= extent / 6.0).all())

@@ -301,8 +301,11 @@ def explain_cameras(cases: list[CameraCase]) -> str | None:
         if passed >= EXPLAINED_SHARE * n and (best is None or passed > best[0]):
             best = (passed, f"{meaning} (changed so, {passed}/{n} views see the head as they should) — {fix}")
     # Several factors may put the head inside the images; the one that brings the principal points
-    # nearest the image centres is the size K was calibrated at.
-    for factor in sorted(K_FACTORS, key=lambda f: _centre_offset(cases, f)):
+    # nearest the image centres is the size K was calibrated at. A factor that moves them away from the
+    # centres only shrinks the view until the head fits: it explains nothing.
+    as_given = _centre_offset(cases, 1)
+    factors = [f for f in K_FACTORS if _centre_offset(cases, f) < as_given]
+    for factor in sorted(factors, key=lambda f: _centre_offset(cases, f)):
         passed = _passing(cases, lambda K, w2c, w, h, f=factor: (_scaled_K(K, f), w2c))
         if passed >= EXPLAINED_SHARE * n and (best is None or passed > best[0]):
             best = (
@@ -370,16 +373,18 @@ def camera_findings(cases: list[CameraCase], subject: str, accepted: tuple[str, 
                 failures.setdefault(name, []).append((case, detail))
     failing = sum(len(f) for f in failures.values())
     if failing >= SUBJECT_SHARE * len(cases):
-        # A convention mistake of the rig: one finding, for the first check failed, with the explanation
-        # tested on every view (the other checks' failures are its consequences).
-        name = next(n for n in CAMERA_CHECKS if n in failures)
+        # A convention mistake of the rig: one finding, for the check most views fail (the first in
+        # order on a tie), with the explanation tested on every view.
+        name = max(CAMERA_CHECKS, key=lambda n: (len(failures.get(n, ())), -CAMERA_CHECKS.index(n)))
         case, detail = failures[name][0]
         cause = explain_cameras(cases) or _UNEXPLAINED[name]
+        counts = ", ".join(f"{n} {len(failures[n])}" for n in CAMERA_CHECKS if n in failures)
         return [
             Finding(
                 name,
                 "dataset",
-                f"subject {subject}: {failing}/{len(cases)} views fail (camera {case.camera}: {detail}): {cause}",
+                f"subject {subject}: {failing}/{len(cases)} views fail ({counts}; camera {case.camera}: "
+                f"{detail}): {cause}",
             )
         ]
     findings = []

@@ -222,7 +222,15 @@ def plan(src: Path, options: AdapterOptions | None = None) -> DatasetPlan:
                 codec = _codec(extension, encoding)
                 size = header_size(image_path, codec)
                 expected = (cameras[camera].width, cameras[camera].height)
-                if size is not None and size != expected:
+                if size is None:
+                    # Refused here, so that a dry run lists it too (the decoder would refuse it later).
+                    empty = image_path.stat().st_size == 0
+                    why = (
+                        "the file is empty" if empty else "its header cannot be read (damaged or truncated?)"
+                    )
+                    refusals.append(Refusal(item, relative, f"not a readable image: {why}"))
+                    continue
+                if size != expected:
                     refusals.append(
                         Refusal(
                             item,

@@ -92,7 +92,7 @@ def test_ava_downsample_factor():
     assert downsample_factor(K, (166, 256), (2668, 4096)).factor == 16  # ... or down
     # A calibration made for a smaller sensor: its principal points say so, and the message names the size.
     K_small = np.array([[[800.0, 0, (104 * 4 - 1) / 2 + 3], [0, 800.0, (160 * 4 - 1) / 2 - 2], [0, 0, 1]]])
-    with pytest.raises(ValueError, match="sensor of about 422x636"):
+    with pytest.raises(ValueError, match="they fit a sensor of 416x640: pass --sensor-size"):
         downsample_factor(K_small, (104, 160), (2668, 4096))
     assert downsample_factor(K_small, (104, 160), (416, 640)).factor == 4
     with pytest.raises(ValueError, match="no downscale"):
@@ -114,3 +114,10 @@ def test_ava_frame_list_errors(tmp_path):
     path.write_text("seg_id,frame_id\nEXP_neutral_peak,one\n")
     with pytest.raises(ValueError, match="line 2"):
         ava256.read_frame_list(path)
+
+
+def test_k_already_at_the_image_size_is_named():
+    K_images = np.array([[[700.0, 0, 180.0], [0, 700.0, 213.0], [0, 0, 1]]])  # off-centre, 334x512 pixels
+    with pytest.raises(ValueError, match=r"a sensor of 334x512 \(the images' own size"):
+        downsample_factor(K_images, (334, 512), (2668, 4096))
+    assert downsample_factor(K_images, (334, 512), (334, 512)).factor == 1

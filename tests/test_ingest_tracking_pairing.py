@@ -226,3 +226,21 @@ def test_template_that_disagrees_with_the_exports_shape_stops(world, tmp_path, c
     args[-1] = str(template(world))
     clean = CliRunner().invoke(cli, [*args, "--dry-run"])
     assert clean.exit_code == 0 and "convention checks: all passed" in clean.output, clean.output
+
+
+def test_sequence_is_chosen_by_name_or_short_name_and_several_need_a_choice(tmp_path):
+    from relightanyone.ingest.nersemble import choose_sequence
+
+    for name in ("EMO-1-shout+laugh", "EXP-1-head", "EXP-10-neck", "BACKGROUND"):
+        (tmp_path / "sequences" / name / "images").mkdir(parents=True)
+        (tmp_path / "sequences" / name / "images" / "cam_220700191.mp4").write_bytes(b"")
+    (tmp_path / "sequences" / "EMPTY-1" / "images").mkdir(parents=True)  # no video: not a choice
+    assert choose_sequence(tmp_path, "v2", "EMO-1") == ("EMO-1-shout+laugh", "")
+    assert choose_sequence(tmp_path, "v2", "EXP-1-head") == ("EXP-1-head", "")
+    chosen, why = choose_sequence(tmp_path, "v2", None)
+    assert chosen is None and "3 sequences hold images" in why and "--sequence NAME" in why
+    chosen, why = choose_sequence(tmp_path, "v2", "SEN-1")
+    assert chosen is None and why.startswith("no sequence SEN-1 with images (sequences: EMO-1-shout+laugh")
+    for name in ("EXP-1-head", "EXP-10-neck"):
+        (tmp_path / "sequences" / name / "images" / "cam_220700191.mp4").unlink()
+    assert choose_sequence(tmp_path, "v2", None) == ("EMO-1-shout+laugh", "")
