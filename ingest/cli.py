@@ -209,7 +209,7 @@ def _adapter_command(spec: AdapterSpec, doctor: bool = False) -> click.Command:
         # writes (inside its tasks).
         image_frames = None if doctor else 1 if dry_run else 0
         checks = run_checks(prepared, tuple(accepted_checks), image_frames)
-        for line in check_lines(checks):
+        for line in check_lines(checks, images_later=not (doctor or dry_run)):
             click.echo(line)
         checks.raise_for_stops(str(src), listed=True)
         if doctor or dry_run:

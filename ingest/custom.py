@@ -222,15 +222,12 @@ def plan(src: Path, options: AdapterOptions | None = None) -> DatasetPlan:
                 codec = _codec(extension, encoding)
                 size = header_size(image_path, codec)
                 expected = (cameras[camera].width, cameras[camera].height)
-                if size is None:
-                    # Refused here, so that a dry run lists it too (the decoder would refuse it later).
-                    empty = image_path.stat().st_size == 0
-                    why = (
-                        "the file is empty" if empty else "its header cannot be read (damaged or truncated?)"
-                    )
-                    refusals.append(Refusal(item, relative, f"not a readable image: {why}"))
+                if size is None and image_path.stat().st_size == 0:
+                    # Refused here, so that a dry run lists it too; a damaged file is left to the decoder,
+                    # whose reason is precise.
+                    refusals.append(Refusal(item, relative, f"{image_path.name}: the file is empty"))
                     continue
-                if size != expected:
+                if size is not None and size != expected:
                     refusals.append(
                         Refusal(
                             item,

@@ -126,6 +126,7 @@ class IngestSummary:
     tracker_cameras: int = (
         0  # cameras compared with the tracker's (none for meshes shipped in the native world)
     )
+    check_reasons: list[str] = field(default_factory=list)  # what the checks quarantined, most frequent first
 
     def lines(self) -> list[str]:
         out = [
@@ -139,6 +140,7 @@ class IngestSummary:
                 f"{self.camera_disagreement_deg:.4f} deg ({self.tracker_cameras} cameras)"
             )
         out += [f"  quarantined ({stage}): {count}" for stage, count in sorted(self.reasons.items())]
+        out += [f"    {reason}" for reason in self.check_reasons]
         return out
 
 
@@ -445,11 +447,13 @@ def run_checks(
     return report
 
 
-def check_lines(report: CheckReport) -> list[str]:
-    """The convention checks' findings as printed before writing: one line each, or that all passed."""
+def check_lines(report: CheckReport, images_later: bool = False) -> list[str]:
+    """The convention checks' findings as printed before writing: one line each, or that all passed.
+    ``images_later``: the images are judged as they are written (an ingest), so the line says so."""
     accepted = f" (not applied: {', '.join(report.accepted)})" if report.accepted else ""
+    later = "; each image is checked as it is written" if images_later else ""
     if not report.findings:
-        return [f"  convention checks: all passed{accepted}"]
+        return [f"  convention checks: all passed{accepted}{later}"]
     return [f"  convention checks: {len(report.findings)} findings{accepted}"] + [
         f"    {line}" for line in report.lines()
     ]
@@ -597,9 +601,15 @@ def found_lines(
         )
     for key, value in sorted(plan.found.items()):
         lines.append(f"  {key}: {listed_values(value)}")
+    writable = sum(1 for t in tasks for v in t.plan.views if int(v.frame) in t.alignments)
     lines.append(
-        f"  output: {plan.view_count} images of {settings.out_size}x{settings.out_size} ({settings.encoding}), "
-        f"about {estimate_bytes(plan.view_count, settings.out_size, settings.encoding) / 1e6:.1f} MB"
+        f"  output: {writable} images of {settings.out_size}x{settings.out_size} ({settings.encoding}), "
+        f"about {estimate_bytes(writable, settings.out_size, settings.encoding) / 1e6:.1f} MB"
+        + (
+            f" (of {plan.view_count} views, the others in frames not aligned)"
+            if writable < plan.view_count
+            else ""
+        )
     )
     return lines
 
@@ -757,10 +767,12 @@ def ingest_dataset(
     if plan.refusals:
         reasons["plan"] = reasons.get("plan", 0) + len(plan.refusals)
     cameras = report["alignment"]["cameras"].values()
+    check_reasons = frequent_check_reasons(dataset_dir / QUARANTINE_NAME)
     if manifest.counts["images"] == 0:
+        first = f"; most frequent: {check_reasons[0]}" if check_reasons else ""
         raise InputError(
             f"{dataset_dir}: no row was written, every view was quarantined ({manifest.quarantined} items; "
-            f"the reasons are in {dataset_dir / QUARANTINE_NAME})"
+            f"the reasons are in {dataset_dir / QUARANTINE_NAME}){first}"
         )
     total_bytes = sum(entry.bytes for entry in manifest.shards)
     return IngestSummary(
@@ -777,4 +789,18 @@ def ingest_dataset(
         camera_disagreement_deg=max((c["angle_deg"] for c in cameras), default=0.0),
         reasons=reasons,
         tracker_cameras=len(cameras),
+        check_reasons=check_reasons,
     )
+
+
+def frequent_check_reasons(quarantine_path: Path, limit: int = 5) -> list[str]:
+    """The distinct reasons of the views the checks quarantined while writing (the image check runs in
+    the tasks, after the checks printed before writing), most frequent first, each with its count."""
+    if not quarantine_path.is_file():
+        return []
+    reasons = Counter(
+        entry["reason"]
+        for entry in (json.loads(line) for line in quarantine_path.read_text().splitlines() if line.strip())
+        if entry.get("stage") == "check"
+    )
+    return [f"{reason} ({count} views)" for reason, count in reasons.most_common(limit)]

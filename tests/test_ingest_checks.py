@@ -462,6 +462,7 @@ def test_tracking_of_other_images_refuses_the_whole_subject(capture, tmp_path):
     move_meshes(capture, (0.06, 0.0, 0.04))
     result = ingest_custom(capture, tmp_path / "out")
     assert result.exit_code == 1 and "no row was written" in result.output, result.output
+    assert "most frequent: check silhouette: subject s1: " in result.output
     refused = quarantine(tmp_path / "out")
     assert len(refused) == 15
     assert all("the tracking is not of these images" in e["reason"] for e in refused)
@@ -488,6 +489,9 @@ def test_a_camera_wrong_in_every_frame_is_refused_as_a_whole(capture, tmp_path):
     assert set(refused) == {f"s1/00000{f}/c3/full" for f in range(3)}
     assert all("camera c3" in r and "a fault of the camera itself" in r for r in refused.values())
     assert len(NormalizedDataset(tmp_path / "out" / "custom")) == 12
+    # The image check runs while writing; the summary names what it quarantined.
+    assert "each image is checked as it is written" in result.output
+    assert "a fault of the camera itself" in result.output and "(3 views)" in result.output
 
 
 def test_an_image_of_another_camera_in_a_second_file_is_not_written_for_the_first(capture, tmp_path):

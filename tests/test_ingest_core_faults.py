@@ -274,3 +274,12 @@ def test_single_threaded_decoders_give_the_same_pixels(tmp_path):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="threads"):
         set_decoder_threads(avif=-1, video=1)
+
+
+def test_an_empty_image_is_refused_while_planning_so_a_dry_run_lists_it(capture, tmp_path):
+    (capture / "images" / "s1" / "000001" / "c2.png").write_bytes(b"")
+    args = ["ingest", "custom", str(capture), "--out", str(tmp_path / "out"), "--preset", "tiny", "--dry-run"]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    assert "1 refused while planning" in result.output
+    assert "s1/000001/c2/full: c2.png: the file is empty" in result.output
