@@ -770,7 +770,7 @@ def check_view_image(
         if (score >= FLIP_OVERLAP and score >= overlap + ALTERNATIVE_GAIN) or (
             share < SUSPECT_ON_FOREGROUND
             and score >= overlap + FLIP_OUTLINE_GAIN
-            and (on_foreground(flipped, head) or 0.0) >= max(SUSPECT_ON_FOREGROUND, share + FLIP_SHARE_GAIN)
+            and (on_foreground(flipped, head) or 0.0) >= max(ALTERNATIVE_AGREEMENT, share + FLIP_SHARE_GAIN)
         ):
             return ViewVerdict(
                 camera,
