@@ -59,12 +59,12 @@ MIN_SUBJECT_VIEWS = 4  # judged views a subject needs before its silhouette fail
 FRAME_MISMATCH = "the tracked mesh disagrees with the frame's images"
 EXPLAINED_SHARE = 0.9  # an alternative explains a failure when this share of the views then passes
 HEAD_POINTS = 200  # vertices used for the camera checks (evenly subsampled)
-HULL_POINTS = 150  # vertices whose convex hull outlines the whole mesh for the image check
 
 # The image check (silhouette): the image is subsampled to at most SILHOUETTE_SIDE pixels on its larger
 # side; the background is the colour of the image's border away from the projected head, used only when
 # that border is uniform (black, a backdrop); otherwise the check cannot tell and says nothing.
 SILHOUETTE_SIDE = 48
+OUTLINE_AGREEMENT = 0.9  # ... or at least this share of the foreground on the whole mesh's silhouette
 ON_FOREGROUND = 0.8  # share of the projected head (neck cut) that must lie on the foreground
 # Below this a view is set aside until the subject's frames can be compared: a frame whose median share is
 # below it and FRAME_MARGIN under the subject's typical frame has the mesh of another frame or pose.
@@ -74,7 +74,7 @@ ALTERNATIVE_AGREEMENT = 0.9  # an alternative (flip, another camera) explains th
 ALTERNATIVE_GAIN = 0.15  # ... and when it is this much better than the view as given
 FLIP_OVERLAP = 0.8  # a flipped image explains a view when the mesh's outline overlaps its foreground so
 FLIP_SHARE_GAIN = 0.08  # ... or when turning it back puts this much more of the head on the foreground
-FLIP_OUTLINE_GAIN = 0.04  # ... and improves the outline's overlap by this much
+FLIP_OUTLINE_GAIN = 0.02  # ... and improves the outline's overlap by this much
 MIN_MASK_PIXELS = 12  # fewer projected pixels than this: too small to judge
 BORDER_BACKGROUND_SHARE = 0.5  # ... of the whole border, when the border away from the head is not uniform
 BORDER_UNIFORM = 0.04  # border pixels within this of their median (relative to the image's peak): uniform
@@ -648,6 +648,19 @@ def quantile(values: np.ndarray, q: float) -> float:
     return float(np.partition(values, rank)[rank])
 
 
+def hull_vertices(points: np.ndarray) -> np.ndarray:
+    """The vertices of the 3D convex hull of ``points (N, 3)``: a perspective projection keeps segments
+    straight, so the 2D hull of their projections is the 2D hull of every point's (the whole mesh's
+    outline, exactly); an evenly spaced subsample misses the extreme vertices (the chin, the crown) and
+    outlines only 73-88 % of a head's silhouette."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        return points[ConvexHull(points).vertices]
+    except (QhullError, ValueError):  # fewer than 4 points, or all in one plane
+        return points
+
+
 def hull_mask(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """``(h, w)`` bool: the convex hull of ``points (N, 3)`` (those in front of the camera) projected by
     ``K``, ``w2c``; size ``(w, h)``. The outline of a whole head and neck, for comparing shapes."""
@@ -698,15 +711,20 @@ def foreground_on_outline(foreground: np.ndarray, whole: np.ndarray) -> float:
 @dataclass(frozen=True)
 class FrameShape:
     """A frame's tracked mesh as the image check sees it: the exact ``silhouette`` (a
-    :class:`~relightanyone.ingest.steps.MeshSilhouette`, neck cut) and, for a cheap outline, a few vertices
-    of the whole mesh ``(N, 3)``; canonical space."""
+    :class:`~relightanyone.ingest.steps.MeshSilhouette`, neck cut), the exact silhouette of the whole
+    mesh ``full`` (neck included), and, for a cheap outline, the vertices of its 3D convex hull ``whole``
+    ``(N, 3)``; canonical space."""
 
     silhouette: object
     whole: np.ndarray
+    full: object
 
     @classmethod
     def of(cls, silhouette) -> FrameShape:
-        return cls(silhouette, subsample(silhouette.vertices, HULL_POINTS))
+        from relightanyone.ingest.steps import MeshSilhouette
+
+        full = MeshSilhouette(silhouette.vertices, silhouette.faces, method=silhouette.method)
+        return cls(silhouette, hull_vertices(silhouette.vertices), full)
 
 
 @dataclass(frozen=True)
@@ -755,12 +773,18 @@ def check_view_image(
     # The whole mesh's outline against the foreground, as given and flipped: a flip shows as a much
     # better overlap, even where the neck-cut head still lies on the foreground.
     overlap = overlap_ratio(foreground, whole)
-    stated = f"{share:.0%} of the projected head on the image's foreground, overlap {overlap:.0%}"
+    stated = (
+        f"{_floor_percent(share)} of the projected head on the image's foreground, overlap "
+        f"{_floor_percent(overlap)}"
+    )
     flips = {
         "upside down": foreground[::-1, ::-1],
         "flipped vertically": foreground[::-1],
         "mirrored left-right": foreground[:, ::-1],
     }
+    if foreground.shape[0] == foreground.shape[1]:  # a square image keeps its size when turned a quarter
+        flips["rotated 90° clockwise"] = np.rot90(foreground, 1)  # turned back counter-clockwise
+        flips["rotated 90° counter-clockwise"] = np.rot90(foreground, -1)
     if overlap > 1.0 - ALTERNATIVE_GAIN and share >= SUSPECT_ON_FOREGROUND:
         flips = {}  # no flip can do better
     for what, flipped in flips.items():
@@ -784,7 +808,11 @@ def check_view_image(
     # Part of the head is off the foreground: shadowed skin, or the wrong camera or image. Another reading
     # that puts the head clearly better on the foreground names the mistake; otherwise the view agrees when
     # its foreground lies on the head's outline (the shadow case), and is judged by the larger share.
-    share = max(share, foreground_on_outline(foreground, whole))
+    # The whole mesh's exact silhouette, not its convex hull: a hull would also take in much of the
+    # foreground of another frame's or camera's image.
+    outline = foreground_on_outline(foreground, shape.full.mask(K_small, w2c, size))
+    if outline >= OUTLINE_AGREEMENT:
+        share = max(share, outline)
 
     def agreement(K_alt: np.ndarray, w2c_alt: np.ndarray) -> tuple[float, float]:
         """(share, outline overlap) of the head seen by another camera on this image's foreground, judged
@@ -831,7 +859,18 @@ def check_view_image(
         )
     if share >= ON_FOREGROUND:
         return ViewVerdict(camera, share)
-    return ViewVerdict(camera, share, f"{stated} (at least {ON_FOREGROUND:.0%} expected)")
+    return ViewVerdict(
+        camera,
+        share,
+        f"{stated}: at best {_floor_percent(share)} agree (at least {ON_FOREGROUND:.0%} expected) — another "
+        "frame's image, a wrong calibration of this camera, or the head hidden?",
+    )
+
+
+def _floor_percent(value: float) -> str:
+    """``value`` in [0, 1] as a whole percentage rounded down, so a share under a threshold never reads as
+    the threshold."""
+    return f"{math.floor(value * 100 + 1e-9)}%"
 
 
 def mismatched_frames(shares_by_frame: dict[int, list[float]]) -> tuple[dict[int, float], float]:

@@ -157,11 +157,13 @@ def _adapter_command(spec: AdapterSpec, doctor: bool = False) -> click.Command:
         accepted_checks,
     ):
         from relightanyone.ingest.runner import (
+            alignment_failures,
             check_lines,
             found_lines,
             ingest_dataset,
             ingest_executor,
             nothing_to_write,
+            planning_reasons,
             prepare,
             run_checks,
         )
@@ -214,8 +216,12 @@ def _adapter_command(spec: AdapterSpec, doctor: bool = False) -> click.Command:
         checks.raise_for_stops(str(src), listed=True)
         if doctor or dry_run:
             click.echo("dry run: nothing written" if dry_run else "doctor: nothing written")
-            if doctor and checks.findings:
-                # Any finding fails the command, so a script can gate an ingest on a clean doctor run.
+            refused = len(planning_reasons(plan)) + len(alignment_failures(prepared[2]))
+            if doctor and (checks.findings or refused):
+                # Anything the ingest would refuse fails the command, so a script can gate an ingest on a
+                # clean doctor run.
+                if refused:
+                    click.echo(f"doctor: {refused} items refused while planning or aligning (listed above)")
                 click.get_current_context().exit(1)
             return
         summary = ingest_dataset(
@@ -240,8 +246,8 @@ def _adapter_command(spec: AdapterSpec, doctor: bool = False) -> click.Command:
     if doctor:
         command.help = (
             f"Check a {command_name} capture at SRC for convention mistakes (cameras, units, images) with the "
-            "arguments ingest takes, reading every image once; write nothing. Exits 1 on any finding: a dataset-level mistake, or views the "
-            "ingest would quarantine."
+            "arguments ingest takes, reading every image once; write nothing. Exits 1 on anything the ingest would refuse: a dataset-level "
+            "mistake, views it would quarantine, or items refused while planning or aligning."
         )
     return command
 

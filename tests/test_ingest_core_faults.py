@@ -283,3 +283,6 @@ def test_an_empty_image_is_refused_while_planning_so_a_dry_run_lists_it(capture,
     assert result.exit_code == 0, result.output
     assert "1 refused while planning" in result.output
     assert "s1/000001/c2/full: c2.png: the file is empty" in result.output
+    doctor = CliRunner().invoke(cli, ["doctor", "custom", str(capture)])
+    assert doctor.exit_code == 1 and "convention checks: all passed" in doctor.output
+    assert "doctor: 1 items refused while planning or aligning" in doctor.output
