@@ -43,6 +43,7 @@ CHECKS: dict[str, str] = {
     "head-size": "the tracked head has a metric size",
     "rig-distance": "cameras are at a metric distance from the head",
     "fit-residual": "the tracked mesh fits the template",
+    "lens": "distortion coefficients are those of a real lens, in OpenCV's order",
     "silhouette": "the projected head lies on the image's own foreground",
 }
 CAMERA_CHECKS = ("rotation", "principal-point", "in-front", "facing", "projection")
@@ -50,6 +51,7 @@ CAMERA_CHECKS = ("rotation", "principal-point", "in-front", "facing", "projectio
 HEAD_SIZE_M = (0.12, 0.40)  # largest side of the head's bounding box above the neck line
 RIG_DISTANCE_M = (0.3, 6.0)  # camera centre to the head's centre
 FIT_RMS_MM = 25.0  # rigid fit of a frame's tracked mesh to the template (or canonical shape), above the neck
+TANGENTIAL_MAX = 0.05  # |p1|, |p2| of a real lens are about 1e-3; larger ones are coefficients out of order
 ROTATION_TOLERANCE = 1e-3  # largest entry of R Rᵀ - I
 PROJECTED_INSIDE = 0.5  # share of the projected head's bounding box that must lie inside the image
 PROJECTED_EXTENT = (0.03, 4.0)  # projected head extent / the image's larger side
@@ -917,6 +919,30 @@ def frame_cameras(
     return out
 
 
+def lens_findings(views: list[SourceView], subject: str, accepted: tuple[str, ...]) -> list[Finding]:
+    """Tangential coefficients (OpenCV's ``p1``, ``p2``: the 3rd and 4th) beyond a real lens's on at least
+    :data:`SUBJECT_SHARE` of the cameras: radial terms written in their place, a rig-wide mistake that
+    stops the ingest. A single camera with large ones is left alone: real calibrations have a few (one of
+    the 40 cameras of a released FaceOLAT calibration has p1 = 0.32)."""
+    if "lens" in accepted:
+        return []
+    cameras = {v.camera.name: v.camera for v in views}
+    bad: dict[str, tuple[float, float]] = {}
+    for name, camera in cameras.items():
+        dist = np.asarray(camera.dist if camera.dist is not None else (), np.float64).reshape(-1)
+        if dist.size >= 4 and max(abs(dist[2]), abs(dist[3])) > TANGENTIAL_MAX:
+            bad[name] = (float(dist[2]), float(dist[3]))
+    if not bad:
+        return []
+    name = sorted(bad)[0]
+    message = (
+        f"subject {subject}, cameras {_names(sorted(bad))}: camera {name} has tangential coefficients "
+        f"p1 = {bad[name][0]:.3g}, p2 = {bad[name][1]:.3g}, beyond a real lens's (|p| < {TANGENTIAL_MAX}): "
+        "coefficients in another order? — give them in OpenCV's order k1 k2 p1 p2 k3"
+    )
+    return [Finding("lens", "dataset", message)] if len(bad) >= SUBJECT_SHARE * len(cameras) else []
+
+
 def check_subject(task, template, accepted: tuple[str, ...]) -> list[Finding]:
     """Every check that needs no pixel, on one subject: ``task`` a
     :class:`~relightanyone.ingest.subject_task.SubjectTask` (views and the alignment of each frame),
@@ -953,7 +979,8 @@ def check_subject(task, template, accepted: tuple[str, ...]) -> list[Finding]:
     if not cases:
         return []
     reference_extent = extent(template.vertices[head_mask])
-    findings = template_findings(plan.subject, template.path, task.template_fit, accepted)
+    findings = lens_findings(plan.views, plan.subject, accepted)
+    findings += template_findings(plan.subject, template.path, task.template_fit, accepted)
     findings += fit_findings(
         plan.subject, residuals, items_by_frame, tracked_extent, reference_extent, accepted
     )

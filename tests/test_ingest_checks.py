@@ -571,3 +571,22 @@ def test_head_mostly_black_like_dark_hair_passes_with_no_finding(capture, tmp_pa
     assert result.exit_code == 0, result.output
     assert quarantine(tmp_path / "out") == []
     assert len(NormalizedDataset(tmp_path / "out" / "custom")) == 15
+
+
+def test_distortion_coefficients_out_of_order_stop_the_ingest(capture, tmp_path):
+    """k2 and k3 written into the tangential slots on every camera; one odd camera alone passes."""
+    path = capture / "cameras.json"
+    document = json.loads(path.read_text())
+    cameras = document["cameras"]
+    cameras["c2"]["dist"] = [0.1, 0.0, 0.12, 0.0, 0.0]
+    path.write_text(json.dumps(document))
+    alone = run("doctor", "custom", capture)
+    assert "check lens" not in alone.output, alone.output
+    for camera in cameras.values():
+        camera["dist"] = [-0.3, 0.0, 0.12, -0.02, 0.0]
+    path.write_text(json.dumps(document))
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 1 and not (tmp_path / "out" / "custom").exists()
+    finding = next(line for line in result.output.splitlines() if "check lens" in line)
+    assert "p1 = 0.12, p2 = -0.02" in finding and "OpenCV's order k1 k2 p1 p2 k3" in finding
+    assert "--accept-check lens" in finding
