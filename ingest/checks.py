@@ -31,6 +31,7 @@ from relightanyone.align.geometry import (
 )
 from relightanyone.errors import InputError
 from relightanyone.ingest.records import SourceView
+from relightanyone.ingest.steps import MeshSilhouette
 
 # name -> what it checks (docs/ingest.md lists each with its threshold and the causes it names).
 CHECKS: dict[str, str] = {
@@ -723,8 +724,6 @@ class FrameShape:
 
     @classmethod
     def of(cls, silhouette) -> FrameShape:
-        from relightanyone.ingest.steps import MeshSilhouette
-
         full = MeshSilhouette(silhouette.vertices, silhouette.faces, method=silhouette.method)
         return cls(silhouette, hull_vertices(silhouette.vertices), full)
 
