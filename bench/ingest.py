@@ -311,8 +311,9 @@ def checks_cost(plan, world: Path, preset: str = PRESET) -> dict:
     writing) plus the image check of every view (run by the tasks on images they decode anyway, so
     decoding is not counted). CPU time, not wall time: on a loaded machine the wall time of a short step
     mostly measures the other processes."""
-    from relightanyone.ingest.checks import ImageCheck, check_tasks, view_item
+    from relightanyone.ingest.checks import check_tasks, view_item
     from relightanyone.ingest.decode import TaskDecoder
+    from relightanyone.ingest.image_check import ImageCheck
     from relightanyone.ingest.runner import ingest_dataset, prepare
     from relightanyone.ingest.subject_task import FrameMesh, canonical_mesh
 

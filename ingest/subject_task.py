@@ -17,13 +17,14 @@ import numpy as np
 from relightanyone.align.geometry import transform_points, w2c_to_canonical
 from relightanyone.format.codecs import encode_image, encode_mask
 from relightanyone.format.schema import ImageRow, MeshRow, QuarantineEntry, build_image_row
-from relightanyone.ingest.checks import Finding, ImageCheck, view_item
+from relightanyone.ingest.checks import Finding, view_item
 from relightanyone.ingest.decode import (
     DecodeError,
     TaskDecoder,
     apply_colour_calibration,
     set_decoder_threads,
 )
+from relightanyone.ingest.image_check import ImageCheck
 from relightanyone.ingest.records import SourceView, SubjectPlan
 from relightanyone.ingest.steps import (
     MeshSilhouette,

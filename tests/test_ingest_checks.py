@@ -26,10 +26,11 @@ from relightanyone.ingest.checks import (
     camera_findings,
     camera_problem,
     explain_cameras,
-    mismatched_frames,
+    subsample,
     surround_findings,
 )
 from relightanyone.ingest.decode import TaskDecoder
+from relightanyone.ingest.image_check import hull_mask, hull_vertices, image_foreground, mismatched_frames
 from relightanyone.render.mesh import read_obj
 from relightanyone.synth.capture import look_at_w2c
 from relightanyone.synth.presets import DatasetSize
@@ -528,8 +529,6 @@ def test_selections_that_match_nothing_and_duplicate_cameras_are_named(capture, 
 
 
 def test_background_is_found_when_the_head_reaches_the_border_away_from_its_mask():
-    from relightanyone.ingest.checks import image_foreground
-
     image = np.zeros((40, 30, 3), np.float32)
     image[10:30, 0:12] = 0.6  # the head, touching the left border
     expected = np.zeros((40, 30), bool)
@@ -543,8 +542,6 @@ def test_background_is_found_when_the_head_reaches_the_border_away_from_its_mask
 def test_outline_is_the_hull_of_every_vertex():
     """The 3D hull's vertices outline a head exactly as all of its vertices do; an evenly spaced subsample
     misses the extreme ones (here the outline of 150 of them covers clearly less)."""
-    from relightanyone.ingest.checks import hull_mask, hull_vertices, subsample
-
     rng = np.random.default_rng(3)
     directions = rng.normal(size=(6000, 3))
     radii = np.where(rng.random(6000) < 0.5, 1.0, rng.uniform(0.5, 0.95, 6000))[

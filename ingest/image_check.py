@@ -1,0 +1,555 @@
+"""The image check (``silhouette``): does the tracked head, projected by each view's camera, lie on the
+image's own foreground?
+
+Each ``full`` image is subsampled to at most :data:`SILHOUETTE_SIDE` pixels; its background is the colour
+of its border (a studio backdrop), and the foreground what differs from it. A view agrees when most of
+the neck-cut head lies on the foreground, or (skin in black shadow) when the foreground lies on the whole
+mesh's silhouette. A view that does not is tried flipped, with its camera read in the alternative
+conventions of the camera checks (:mod:`.checks`) and with every other camera of its frame, and the
+reading that explains it is named. :class:`ImageCheck` judges one subject's views in an ingest task or in
+``doctor``: it compares the frames, and refuses a subject or a camera as a whole when their failures
+concern more than one view. Thresholds are listed in ``docs/ingest.md`` ("Checks").
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from relightanyone.align.geometry import invert_similarity
+from relightanyone.ingest.checks import CAMERA_ALTERNATIVES, SUBJECT_SHARE, view_item
+from relightanyone.ingest.records import SourceView
+from relightanyone.ingest.steps import MeshSilhouette
+
+# The image check (silhouette): the image is subsampled to at most SILHOUETTE_SIDE pixels on its larger
+# side; the background is the colour of the image's border away from the projected head, used only when
+# that border is uniform (black, a backdrop); otherwise the check cannot tell and says nothing.
+SILHOUETTE_SIDE = 48
+OUTLINE_AGREEMENT = 0.9  # ... or at least this share of the foreground on the whole mesh's silhouette
+ON_FOREGROUND = 0.8  # share of the projected head (neck cut) that must lie on the foreground
+# Below this a view is set aside until the subject's frames can be compared: a frame whose median share is
+# below it and FRAME_MARGIN under the subject's typical frame has the mesh of another frame or pose.
+SUSPECT_ON_FOREGROUND = 0.97
+FRAME_MARGIN = 0.03
+ALTERNATIVE_AGREEMENT = 0.9  # an alternative (flip, another camera) explains the image from this agreement
+ALTERNATIVE_GAIN = 0.15  # ... and when it is this much better than the view as given
+FLIP_OVERLAP = 0.8  # a flipped image explains a view when the mesh's outline overlaps its foreground so
+FLIP_SHARE_GAIN = 0.08  # ... or when turning it back puts this much more of the head on the foreground
+FLIP_OUTLINE_GAIN = 0.02  # ... and improves the outline's overlap by this much
+MIN_MASK_PIXELS = 12  # fewer projected pixels than this: too small to judge
+BORDER_BACKGROUND_SHARE = 0.5  # ... of the whole border, when the border away from the head is not uniform
+BORDER_UNIFORM = 0.04  # border pixels within this of their median (relative to the image's peak): uniform
+# Foreground: farther from the background than this share of the image's peak, and than this many times
+# the border's own spread (its noise), whichever is more (dark skin and hair are a few % of the peak).
+FOREGROUND_CONTRAST = 0.01
+BACKGROUND_NOISE_FACTOR = 4.0
+MIN_SUBJECT_VIEWS = 4  # judged views a subject needs before its silhouette failures refuse it as a whole
+FRAME_MISMATCH = "the tracked mesh disagrees with the frame's images"
+
+
+# ----------------------------------------------------------------------------------------- image check
+def image_foreground(image: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
+    """``(h, w)`` bool foreground of a subsampled ``image (h, w, 3)`` against the colour of its border away
+    from ``mask (h, w)`` (the projected head, dilated); None when that border is not uniform."""
+    h, w = mask.shape
+    ring = np.zeros((h, w), dtype=bool)
+    ring[:2], ring[-2:], ring[:, :2], ring[:, -2:] = True, True, True, True
+    near = cv2.dilate(mask.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    peak = quantile(channel_max(image).ravel(), 0.99)
+    if peak <= 0:
+        return None
+    estimate = _uniform_background(image[ring & ~near], peak, 0.8)
+    if estimate is None:
+        # The head may reach the border where the mesh says it does not (a flipped image, another
+        # camera's view): then the background is the colour most of the whole border has.
+        estimate = _uniform_background(image[ring], peak, BORDER_BACKGROUND_SHARE)
+    if estimate is None:
+        return None
+    background, noise = estimate
+    threshold = max(FOREGROUND_CONTRAST * peak, BACKGROUND_NOISE_FACTOR * noise)
+    return channel_max(cv2.absdiff(image, np.full_like(image, background))) > threshold
+
+
+def _uniform_background(border: np.ndarray, peak: float, share: float) -> tuple[np.ndarray, float] | None:
+    """``(colour (3,), noise)`` of the background when the ``share`` quantile of the ``border (N, 3)``
+    pixels' distance to their median colour (the noise) is within :data:`BORDER_UNIFORM` of the image's
+    ``peak``, else None."""
+    if len(border) < 16:
+        return None
+    middle = (len(border) - 1) // 2
+    background = np.partition(border, middle, axis=0)[middle].astype(np.float32)  # per-channel median
+    noise = quantile(np.abs(border - background).max(axis=1), share)
+    return None if noise > BORDER_UNIFORM * peak else (background, noise)
+
+
+def channel_max(image: np.ndarray) -> np.ndarray:
+    """``(h, w)`` the largest of the three channels of ``image (h, w, 3)`` (``max(axis=2)`` is several times
+    slower on small images)."""
+    return np.maximum(np.maximum(image[..., 0], image[..., 1]), image[..., 2])
+
+
+def quantile(values: np.ndarray, q: float) -> float:
+    """The ``q`` quantile of ``values (N,)`` (the nearest rank below; cheaper than ``np.percentile``)."""
+    rank = int(q * (len(values) - 1))
+    return float(np.partition(values, rank)[rank])
+
+
+def hull_vertices(points: np.ndarray) -> np.ndarray:
+    """The vertices of the 3D convex hull of ``points (N, 3)``: a perspective projection keeps segments
+    straight, so the 2D hull of their projections is the 2D hull of every point's (the whole mesh's
+    outline, exactly); an evenly spaced subsample misses the extreme vertices (the chin, the crown) and
+    outlines only 73-88 % of a head's silhouette."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        return points[ConvexHull(points).vertices]
+    except (QhullError, ValueError):  # fewer than 4 points, or all in one plane
+        return points
+
+
+def hull_mask(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``(h, w)`` bool: the convex hull of ``points (N, 3)`` (those in front of the camera) projected by
+    ``K``, ``w2c``; size ``(w, h)``. The outline of a whole head and neck, for comparing shapes."""
+    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+    cam = cam[cam[:, 2] > 0]
+    mask = np.zeros((size[1], size[0]), np.uint8)
+    if len(cam) >= 3:
+        pixels = cam[:, :2] / cam[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
+        pixels = np.clip(pixels, -4 * max(size), 4 * max(size))
+        hull = cv2.convexHull(np.round(pixels).astype(np.int32))
+        cv2.fillConvexPoly(mask, hull, 1)
+    return mask.astype(bool)
+
+
+def subsampled_camera(K: np.ndarray, stride: int) -> np.ndarray:
+    """``K`` of an image subsampled by taking every ``stride``-th pixel (pixel ``i`` of it is ``i · stride``)."""
+    out = K.astype(np.float64).copy()
+    out[:2] /= stride
+    out[2] = K[2]
+    return out
+
+
+def silhouette_stride(width: int, height: int) -> int:
+    return max(1, math.ceil(max(width, height) / SILHOUETTE_SIDE))
+
+
+def overlap_ratio(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two ``(h, w)`` bool masks (0 when both are empty)."""
+    union = int(np.count_nonzero(a | b))
+    return float(np.count_nonzero(a & b)) / union if union else 0.0
+
+
+def on_foreground(foreground: np.ndarray, mask: np.ndarray) -> float | None:
+    pixels = int(mask.sum())
+    if pixels < MIN_MASK_PIXELS:
+        return None
+    return float(np.count_nonzero(foreground & mask)) / pixels
+
+
+def foreground_on_outline(foreground: np.ndarray, whole: np.ndarray) -> float:
+    """Share of the image's ``foreground (h, w)`` bool that lies on the whole mesh's outline ``whole (h,
+    w)``: the other direction of the agreement, blind to skin in deep shadow (as black as a black
+    backdrop, so off the foreground), which the head's share on the foreground is not."""
+    pixels = int(np.count_nonzero(foreground))
+    return float(np.count_nonzero(foreground & whole)) / pixels if pixels else 0.0
+
+
+@dataclass(frozen=True)
+class FrameShape:
+    """A frame's tracked mesh as the image check sees it: the exact ``silhouette`` (a
+    :class:`~relightanyone.ingest.steps.MeshSilhouette`, neck cut), the exact silhouette of the whole
+    mesh ``full`` (neck included), and, for a cheap outline, the vertices of its 3D convex hull ``whole``
+    ``(N, 3)``; canonical space."""
+
+    silhouette: object
+    whole: np.ndarray
+    full: object
+
+    @classmethod
+    def of(cls, silhouette) -> FrameShape:
+        full = MeshSilhouette(silhouette.vertices, silhouette.faces, method=silhouette.method)
+        return cls(silhouette, hull_vertices(silhouette.vertices), full)
+
+
+@dataclass(frozen=True)
+class ViewVerdict:
+    """The image check of one view: ``share`` of the projected head on the foreground (None: the
+    background is not uniform enough to tell); ``problem`` the reason it fails, ``explained`` when a flip or
+    another camera's view explains it."""
+
+    camera: str
+    share: float | None
+    problem: str | None = None
+    explained: bool = False
+    swapped_with: str | None = None  # the camera whose view the image shows
+
+
+def check_view_image(
+    camera: str,
+    image: np.ndarray,
+    K: np.ndarray,
+    w2c: np.ndarray,
+    shape: FrameShape,
+    others: dict[str, tuple[np.ndarray, np.ndarray, int, int]],
+    conventions: Callable[[], list[tuple[str, str, np.ndarray, np.ndarray]]] | None = None,
+) -> ViewVerdict:
+    """Does the head projected by ``K (3, 3)``, ``w2c (4, 4)`` (canonical) lie on the foreground of ``image
+    (H, W, 3)``? ``shape`` is the frame's mesh (:class:`FrameShape`);
+    ``others`` the frame's other cameras ``name -> (K, w2c, width, height)``, tried when the view fails
+    (its image may be theirs), after ``conventions()``: this camera read with each of
+    :data:`CAMERA_ALTERNATIVES`, ``(meaning, fix, K, w2c)``."""
+    height, width = image.shape[:2]
+    stride = silhouette_stride(width, height)
+    small = np.ascontiguousarray(image[::stride, ::stride, :3], dtype=np.float32)
+    size = (small.shape[1], small.shape[0])
+    K_small = subsampled_camera(K, stride)
+    # The whole mesh's outline (neck included; the convex hull of a few vertices) keeps the background
+    # estimate off the head and is what a flip is judged by; the share is the exact silhouette's.
+    silhouette = shape.silhouette
+    whole = hull_mask(shape.whole, K_small, w2c, size)
+    foreground = image_foreground(small, whole)
+    if foreground is None:
+        return ViewVerdict(camera, None)
+    head = silhouette.mask(K_small, w2c, size)
+    share = on_foreground(foreground, head)
+    if share is None:
+        return ViewVerdict(camera, share)
+    # The whole mesh's outline against the foreground, as given and flipped: a flip shows as a much
+    # better overlap, even where the neck-cut head still lies on the foreground.
+    overlap = overlap_ratio(foreground, whole)
+    stated = (
+        f"{_floor_percent(share)} of the projected head on the image's foreground, overlap "
+        f"{_floor_percent(overlap)}"
+    )
+    flips = {
+        "upside down": foreground[::-1, ::-1],
+        "flipped vertically": foreground[::-1],
+        "mirrored left-right": foreground[:, ::-1],
+    }
+    if foreground.shape[0] == foreground.shape[1]:  # a square image keeps its size when turned a quarter
+        flips["rotated 90° clockwise"] = np.rot90(foreground, 1)  # turned back counter-clockwise
+        flips["rotated 90° counter-clockwise"] = np.rot90(foreground, -1)
+    if overlap > 1.0 - ALTERNATIVE_GAIN and share >= SUSPECT_ON_FOREGROUND:
+        flips = {}  # no flip can do better
+    for what, flipped in flips.items():
+        score = overlap_ratio(flipped, whole)
+        # A much better outline; or, when the head is framed so that its outline changes little under a
+        # flip, the head lying wholly on the foreground once turned back (and the outline better too).
+        if (score >= FLIP_OVERLAP and score >= overlap + ALTERNATIVE_GAIN) or (
+            share < SUSPECT_ON_FOREGROUND
+            and score >= overlap + FLIP_OUTLINE_GAIN
+            and (on_foreground(flipped, head) or 0.0) >= max(ALTERNATIVE_AGREEMENT, share + FLIP_SHARE_GAIN)
+        ):
+            return ViewVerdict(
+                camera,
+                share,
+                f"the image of camera {camera} is {what} relative to its mask ({stated}; {score:.0%} "
+                "with the image turned back) — fix the image's orientation",
+                True,
+            )
+    if share >= ON_FOREGROUND:
+        return ViewVerdict(camera, share)
+    # Part of the head is off the foreground: shadowed skin, or the wrong camera or image. Another reading
+    # that puts the head clearly better on the foreground names the mistake; otherwise the view agrees when
+    # its foreground lies on the head's outline (the shadow case), and is judged by the larger share.
+    # The whole mesh's exact silhouette, not its convex hull: a hull would also take in much of the
+    # foreground of another frame's or camera's image.
+    outline = foreground_on_outline(foreground, shape.full.mask(K_small, w2c, size))
+    if outline >= OUTLINE_AGREEMENT:
+        share = max(share, outline)
+
+    def agreement(K_alt: np.ndarray, w2c_alt: np.ndarray) -> tuple[float, float]:
+        """(share, outline overlap) of the head seen by another camera on this image's foreground, judged
+        both ways as the view itself; the share (an exact silhouette, the costly part) only when the
+        outline overlaps the foreground clearly better than as given (relative: in deep shadow no outline
+        overlaps the foreground well)."""
+        K_alt = subsampled_camera(K_alt, stride)
+        alt_whole = hull_mask(shape.whole, K_alt, w2c_alt, size)
+        alt_overlap = overlap_ratio(foreground, alt_whole)
+        if alt_overlap < overlap + ALTERNATIVE_GAIN:
+            return 0.0, alt_overlap
+        alt_share = on_foreground(foreground, silhouette.mask(K_alt, w2c_alt, size)) or 0.0
+        return max(alt_share, foreground_on_outline(foreground, alt_whole)), alt_overlap
+
+    def explains(scores: tuple[float, float]) -> bool:
+        return scores[0] >= ALTERNATIVE_AGREEMENT  # its outline gained already (else the share is 0)
+
+    for meaning, fix, K_alt, w2c_alt in conventions() if conventions is not None else ():
+        scores = agreement(K_alt, w2c_alt)
+        if explains(scores):
+            return ViewVerdict(
+                camera,
+                share,
+                f"camera {camera}: {stated}; {meaning} (changed so, {scores[0]:.0%} of it on the foreground) "
+                f"— {fix}",
+                True,
+            )
+    best: tuple[float, str] | None = None
+    for other, (K_o, w2c_o, w_o, h_o) in others.items():
+        if other == camera or (w_o, h_o) != (width, height):
+            continue
+        scores = agreement(K_o, w2c_o)
+        if explains(scores) and (best is None or scores[0] > best[0]):
+            best = (scores[0], other)
+    if best is not None:
+        return ViewVerdict(
+            camera,
+            share,
+            f"the image of camera {camera} shows camera {best[1]}'s view ({stated}, {best[0]:.0%} with "
+            f"{best[1]}'s camera): views of cameras {camera} and {best[1]} look swapped — check the "
+            "image names",
+            True,
+            best[1],
+        )
+    if share >= ON_FOREGROUND:
+        return ViewVerdict(camera, share)
+    return ViewVerdict(
+        camera,
+        share,
+        f"{stated}: at best {_floor_percent(share)} agree (at least {ON_FOREGROUND:.0%} expected) — another "
+        "frame's image, a wrong calibration of this camera, or the head hidden?",
+    )
+
+
+def _floor_percent(value: float) -> str:
+    """``value`` in [0, 1] as a whole percentage rounded down, so a share under a threshold never reads as
+    the threshold."""
+    return f"{math.floor(value * 100 + 1e-9)}%"
+
+
+def mismatched_frames(shares_by_frame: dict[int, list[float]]) -> tuple[dict[int, float], float]:
+    """Frames whose views agree with their tracked mesh clearly worse than the subject's other frames:
+    ``({frame: median share}, the subject's median of frame medians)``. Needs two frames with at least two
+    judged views each (a single frame has nothing to be compared with)."""
+    medians = {f: float(np.median(s)) for f, s in shares_by_frame.items() if len(s) >= 2}
+    if len(medians) < 2:
+        return {}, float("nan")
+    baseline = float(np.median(list(medians.values())))
+    bad = {f: m for f, m in medians.items() if m < SUSPECT_ON_FOREGROUND and m < baseline - FRAME_MARGIN}
+    return bad, baseline
+
+
+def _most_frequent(problems: list[str]) -> str:
+    """The most frequent of ``problems`` without its ``subject … frame …:`` prefix."""
+    stripped = [p.split(": ", 1)[1] if p.startswith("subject ") and ": " in p else p for p in problems]
+    return max(sorted(set(stripped)), key=stripped.count)
+
+
+def frame_cameras(
+    views: Iterable[SourceView], canonical_from_native: np.ndarray
+) -> dict[str, tuple[np.ndarray, np.ndarray, int, int]]:
+    """camera -> ``(K, w2c, width, height)`` of one frame's views, ``w2c`` from canonical space to camera
+    coordinates in native units, ``w2c_native · canonical_from_native⁻¹``: the pixels of
+    :func:`~relightanyone.align.geometry.w2c_to_canonical`, which also rescales the camera to metres and
+    re-orthonormalises it for storage (a projection needs neither)."""
+    native_from_canonical = invert_similarity(canonical_from_native)
+    out = {}
+    for view in views:
+        if view.camera.name not in out:
+            w2c = np.asarray(view.camera.w2c, np.float64) @ native_from_canonical
+            out[view.camera.name] = (
+                np.asarray(view.camera.K, np.float64),
+                w2c,
+                view.camera.width,
+                view.camera.height,
+            )
+    return out
+
+
+class ImageCheck:
+    """The silhouette check over one subject's views (an ingest task, ``doctor``).
+
+    A view that fails, or agrees with its mesh less than :data:`SUSPECT_ON_FOREGROUND`, is held back (no
+    row) until every view was seen; then the frames are compared (:func:`mismatched_frames`): held views of
+    a mismatched frame, and views that fail, are refused with their reason, the others are released and
+    written after all. ``silhouettes``: frame -> the frame's
+    :class:`~relightanyone.ingest.steps.MeshSilhouette` in canonical space. Only ``"full"`` images are
+    judged (an OLAT image lights part of the head).
+    """
+
+    def __init__(self, task, silhouettes: dict, accepted: tuple[str, ...] = ()):
+        self.task = task
+        self.shapes = {frame: FrameShape.of(silhouette) for frame, silhouette in silhouettes.items()}
+        self.enabled = "silhouette" not in accepted
+        self._views: dict[int, list[SourceView]] = {}
+        for view in task.plan.views:
+            self._views.setdefault(view.frame, []).append(view)
+        self._cameras: dict[int, dict] = {}
+        self._shares: dict[int, list[float]] = {}
+        self._held: list[tuple[SourceView, str, ViewVerdict]] = []
+        self._released: set[str] = set()
+        self._refusals: list[tuple[str, str, str]] = []
+        self._swaps: dict[tuple[int, str], str] = {}  # (frame, camera) -> the problem its partner named
+        self._judged: dict[str, int] = {}  # camera -> views judged
+        self._withdrawn: dict[str, str] = {}  # camera (or "" for the whole subject) -> reason
+
+    def holds(self, view: SourceView, item: str, image: np.ndarray) -> bool:
+        """Judge ``image (H, W, 3)`` of ``view``; True when it is held back."""
+        if not self.enabled or view.pattern != "full" or view.frame not in self.shapes:
+            return False
+        if item in self._released:
+            return False
+        if view.frame not in self._cameras:
+            alignment = self.task.alignments[view.frame]
+            self._cameras[view.frame] = frame_cameras(
+                self._views[view.frame], alignment.canonical_from_native
+            )
+        cameras = self._cameras[view.frame]
+        camera = cameras.get(view.camera.name)
+        if camera is None or image.shape[:2] != (camera[3], camera[2]):
+            return False  # not rigid or the wrong size: other steps refuse it with that reason
+
+        def conventions() -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+            """This camera read with each alternative convention, as canonical cameras (only on failure)."""
+            native_from_canonical = invert_similarity(self.task.alignments[view.frame].canonical_from_native)
+            K, w2c, width, height = (
+                view.camera.K,
+                np.asarray(view.camera.w2c),
+                view.camera.width,
+                view.camera.height,
+            )
+            changed = [
+                (meaning, fix, *change(K, w2c, width, height)) for meaning, fix, change in CAMERA_ALTERNATIVES
+            ]
+            return [
+                (meaning, fix, K_alt, w2c_alt @ native_from_canonical)
+                for meaning, fix, K_alt, w2c_alt in changed
+            ]
+
+        verdict = check_view_image(
+            view.camera.name, image, camera[0], camera[1], self.shapes[view.frame], cameras, conventions
+        )
+        if verdict.share is None:
+            return False
+        self._shares.setdefault(view.frame, []).append(verdict.share)
+        self._judged[view.camera.name] = self._judged.get(view.camera.name, 0) + 1
+        if verdict.swapped_with is not None:
+            self._swaps[(view.frame, verdict.swapped_with)] = verdict.problem
+        swapped = self._swaps.get((view.frame, view.camera.name))
+        if swapped is not None and not verdict.explained:
+            verdict = ViewVerdict(verdict.camera, verdict.share, swapped, True)
+        if verdict.problem is None and verdict.share >= SUSPECT_ON_FOREGROUND:
+            return False
+        self._held.append((view, item, verdict))
+        return True
+
+    def decide(self) -> tuple[list[tuple[str, str, str]], list[SourceView]]:
+        """After every view was judged: ``(item, source, reason)`` of the held views to refuse, and the
+        held views to release. Failures on more than :data:`SUBJECT_SHARE` of the subject's judged views
+        refuse the whole subject, and a camera whose views all fail or agree poorly (at least half fail)
+        is refused as a whole: one wrong calibration or a tracking of other images shows in every view,
+        whatever each view's own verdict guessed (:meth:`withdrawn` then names the views already
+        written)."""
+        refusals, released = self._view_decisions()
+        judged = sum(self._judged.values())
+        problems = {item: reason for item, _, reason in refusals}
+        if judged >= MIN_SUBJECT_VIEWS and len(problems) > SUBJECT_SHARE * judged:
+            reason = self._subject_reason(len(problems), judged, list(problems.values()))
+            self._withdrawn = {"": reason}
+            return [(item, view.source, reason) for view, item, _ in self._held], []
+        by_camera: dict[str, list[str]] = {}
+        for view, item, _ in self._held:
+            by_camera.setdefault(view.camera.name, []).append(item)
+        for camera, items in by_camera.items():
+            failing = [problems[i] for i in items if i in problems and FRAME_MISMATCH not in problems[i]]
+            # Every judged view of the camera was held (none agreed well) and at least half failed.
+            if (
+                len(items) >= 2
+                and len(items) == self._judged.get(camera, 0)
+                and 2 * len(failing) >= len(items)
+            ):
+                self._withdrawn[camera] = self._camera_reason(camera, len(failing), len(items), failing)
+        if self._withdrawn:
+            camera_of = {item: view.camera.name for view, item, _ in self._held}
+            refusals = [
+                (item, source, self._withdrawn.get(camera_of[item], reason))
+                for item, source, reason in refusals
+            ]
+            refusals += [
+                (view_item(v), v.source, self._withdrawn[v.camera.name])
+                for v in released
+                if v.camera.name in self._withdrawn
+            ]
+            released = [v for v in released if v.camera.name not in self._withdrawn]
+        return refusals, released
+
+    def withdrawn(self) -> dict[str, str]:
+        """After :meth:`decide`: item -> reason of every view of the subject (any pattern, any frame) that
+        a subject- or camera-wide failure refuses, including views already written."""
+        if not self._withdrawn:
+            return {}
+        whole = self._withdrawn.get("")
+        return {
+            view_item(v): whole or self._withdrawn[v.camera.name]
+            for v in self.task.plan.views
+            if whole is not None or v.camera.name in self._withdrawn
+        }
+
+    def _subject_reason(self, failing: int, judged: int, problems: list[str]) -> str:
+        subject = self.task.plan.subject
+        shares = [s for frame in self._shares.values() for s in frame]
+        return (
+            f"subject {subject}: {failing} of {judged} judged views disagree with the tracked mesh (median "
+            f"{float(np.median(shares)):.0%} of the projected head on the image's foreground), so every view "
+            "of the subject is refused: the tracking is not of these images (another sequence: --sequence; "
+            "another subject) or the whole rig's calibration is read wrongly; most frequent view finding: "
+            f"{_most_frequent(problems)}"
+        )
+
+    def _camera_reason(self, camera: str, failing: int, held: int, problems: list[str]) -> str:
+        return (
+            f"subject {self.task.plan.subject} camera {camera}: {failing} of its {held} judged views fail and "
+            "none agrees well with the tracked mesh, so all its views are refused: a fault of the camera "
+            f"itself (its calibration, or the names of its images) — fix camera {camera}; most frequent "
+            f"finding: {_most_frequent(problems)}"
+        )
+
+    def _view_decisions(self) -> tuple[list[tuple[str, str, str]], list[SourceView]]:
+        """:meth:`decide` for each held view on its own."""
+        subject = self.task.plan.subject
+        bad, baseline = mismatched_frames(self._shares)
+        refusals, released = [], []
+        for view, item, verdict in self._held:
+            swapped = self._swaps.get((view.frame, view.camera.name))
+            if swapped is not None and not verdict.explained:
+                verdict = ViewVerdict(verdict.camera, verdict.share, swapped, True)
+            if verdict.explained:
+                refusals.append(
+                    (item, view.source, f"subject {subject} frame {view.frame}: {verdict.problem}")
+                )
+            elif view.frame in bad:
+                refusals.append(
+                    (
+                        item,
+                        view.source,
+                        f"subject {subject} frame {view.frame}: {FRAME_MISMATCH} "
+                        f"(median {bad[view.frame]:.0%} of the projected head on the foreground, "
+                        f"{baseline:.0%} in the subject's frames): the mesh of another frame or head pose? "
+                        "— check the tracking's frame numbers",
+                    )
+                )
+            elif verdict.problem is not None:
+                refusals.append(
+                    (item, view.source, f"subject {subject} frame {view.frame}: {verdict.problem}")
+                )
+            else:
+                released.append(view)
+        return refusals, released
+
+    def passes(self, views: list[SourceView], before_release: Callable[[list], None] | None = None):
+        """Every view of ``views``, then the held views that :meth:`decide` releases (judged once), after
+        ``before_release`` of their images (the task's decoder prefetches video frames in one pass)."""
+        yield from views
+        self._refusals, released = self.decide()
+        self._released = {view_item(v) for v in released}
+        if released and before_release is not None:
+            before_release([v.image for v in released])
+        yield from released
+
+    def refusals(self) -> list[tuple[str, str, str]]:
+        """``(item, source, reason)`` of the views refused, once :meth:`passes` is exhausted."""
+        return self._refusals
