@@ -118,10 +118,11 @@ class DuplicateKeyError(json.JSONDecodeError):
 
     def __init__(self, key: str):
         ValueError.__init__(self, f"key {key!r} appears twice in one object (only one can be meant)")
+        self.key = key
         self.msg, self.doc, self.pos, self.lineno, self.colno = str(self), "", 0, 0, 0
 
-    def __reduce__(self):
-        return DuplicateKeyError, (self.msg,)
+    def __reduce__(self):  # rebuilt from its key when it crosses a process boundary
+        return DuplicateKeyError, (self.key,)
 
 
 def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:

@@ -99,16 +99,11 @@ def quantile(values: np.ndarray, q: float) -> float:
     return float(np.partition(values, rank)[rank])
 
 
-def hull_vertices(points: np.ndarray) -> np.ndarray:
-    """The vertices of the 3D convex hull of ``points (N, 3)``: a perspective projection keeps segments
-    straight, so the 2D hull of their projections is the 2D hull of every point's (the whole mesh's
-    outline, exactly); an evenly spaced subsample misses the extreme vertices (the chin, the crown) and
-    outlines only 73-88 % of a head's silhouette."""
-    return points[hull_indices(points)]
-
-
 def hull_indices(points: np.ndarray) -> np.ndarray:
-    """``(M,)`` indices of the vertices of the 3D convex hull of ``points (N, 3)`` (all when there is none)."""
+    """``(M,)`` indices of the vertices of the 3D convex hull of ``points (N, 3)`` (all when there is none).
+    A perspective projection keeps segments straight, so the 2D hull of their projections is the 2D hull
+    of every point's; an evenly spaced subsample misses the extreme vertices (the chin, the crown) and
+    outlines only 73-88 % of a head's silhouette."""
     from scipy.spatial import ConvexHull, QhullError
 
     try:

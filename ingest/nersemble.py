@@ -27,7 +27,8 @@ Conventions:
   sRGB-encoded PNG values (row vectors, so the matrix is stored transposed), space ``"display"``.
 * Sequence: ``AdapterOptions.sequence`` (its full name, or the part before the description: ``EMO-1``
   for ``EMO-1-shout+laugh``), else the one sequence other than ``BACKGROUND`` that holds images; with
-  several, the participant is refused until ``--sequence`` chooses. Frames: ``AdapterOptions.frames``, else every frame of the sequence.
+  several, the participant is refused until ``--sequence`` chooses. Frames: ``AdapterOptions.frames``,
+  else every frame of the sequence.
 * Refused, not guessed: a participant whose calibration or colour file is missing or invalid, a camera
   without colour calibration, an unreadable video, a frame past the end of a camera's video, a missing
   PNG, a calibrated serial without a video (or PNG folder) and a video of a serial the calibration lacks.

@@ -51,7 +51,7 @@ from relightanyone.format.schema import (
     check_name,
     fingerprint_config,
 )
-from relightanyone.format.shards import ShardWriter
+from relightanyone.format.shards import QuarantineLog, ShardWriter
 from relightanyone.ingest.checks import CheckReport, check_tasks, view_item
 from relightanyone.ingest.records import DatasetPlan, SubjectPlan
 from relightanyone.ingest.subject_task import IngestSettings, SubjectTask, check_images, run_subject_task
@@ -796,11 +796,5 @@ def ingest_dataset(
 def frequent_check_reasons(quarantine_path: Path, limit: int = 5) -> list[str]:
     """The distinct reasons of the views the checks quarantined while writing (the image check runs in
     the tasks, after the checks printed before writing), most frequent first, each with its count."""
-    if not quarantine_path.is_file():
-        return []
-    reasons = Counter(
-        entry["reason"]
-        for entry in (json.loads(line) for line in quarantine_path.read_text().splitlines() if line.strip())
-        if entry.get("stage") == "check"
-    )
+    reasons = Counter(e.reason for e in QuarantineLog(quarantine_path).entries() if e.stage == "check")
     return [f"{reason} ({count} views)" for reason, count in reasons.most_common(limit)]

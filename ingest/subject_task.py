@@ -307,10 +307,10 @@ def check_images(settings: IngestSettings, task: SubjectTask, frames: int | None
             check.holds(view, view_item(view), image)
     refused, _ = check.decide()
     items_by_reason: dict[str, list[str]] = {}
-    judged: set[str] = set()
+    listed: set[str] = set()
     for item, reason in [*((i, r) for i, _, r in refused), *check.withdrawn().items()]:
-        if item not in judged:
-            judged.add(item)
+        if item not in listed:
+            listed.add(item)
             items_by_reason.setdefault(reason, []).append(item)
     # One finding per reason: a swapped pair, or a subject refused as a whole, is one line.
     return [Finding("silhouette", "view", reason, tuple(items)) for reason, items in items_by_reason.items()]
