@@ -4,11 +4,13 @@ Every trainer joins the group with :func:`setup_process_group` (gloo on CPU, NCC
 draws the same global batch and trains on its slice; :func:`average_gradients` all-reduces the
 gradients once per step so all processes keep identical weights. Work after training (held-out
 scoring) is split with :func:`shard` and collected with :func:`gather_items` so no process waits on
-another for long.
+another for long. The group is left at interpreter exit (:func:`leave_process_group`): a gloo process that
+exits with its group still up can abort while its worker threads are torn down.
 """
 
 from __future__ import annotations
 
+import atexit
 import os
 from dataclasses import dataclass
 from typing import Any
@@ -45,12 +47,19 @@ def setup_process_group(device_name: str = "auto") -> ProcessGroup:
     use_cuda = device.type == "cuda"
     if world_size > 1 and not dist.is_initialized():
         dist.init_process_group("nccl" if use_cuda else "gloo")
+        atexit.register(leave_process_group)
     rank = dist.get_rank() if world_size > 1 else 0
     if use_cuda:
         if world_size > 1 or device.index is None:
             device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
         torch.cuda.set_device(device)
     return ProcessGroup(rank=rank, world_size=world_size, device=device)
+
+
+def leave_process_group() -> None:
+    """Destroy the default process group, if one is up, while the interpreter is still whole."""
+    if dist.is_initialized():
+        dist.destroy_process_group()
 
 
 def broadcast_weights(module: torch.nn.Module, group: ProcessGroup) -> None:
