@@ -14,8 +14,9 @@ concern more than one view. Thresholds are listed in ``docs/ingest.md`` ("Checks
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -36,6 +37,10 @@ ON_FOREGROUND = 0.8  # share of the projected head (neck cut) that must lie on t
 # below it and FRAME_MARGIN under the subject's typical frame has the mesh of another frame or pose.
 SUSPECT_ON_FOREGROUND = 0.97
 FRAME_MARGIN = 0.03
+# A held view is also tried with the meshes of up to FRAMES_TRIED nearest frames: one that agrees at least
+# ALTERNATIVE_AGREEMENT and FRAME_GAIN better than the view's own frame shows the image is of that frame.
+FRAMES_TRIED = 6
+FRAME_GAIN = 0.05
 ALTERNATIVE_AGREEMENT = 0.9  # an alternative (flip, another camera) explains the image from this agreement
 ALTERNATIVE_GAIN = 0.15  # ... and when it is this much better than the view as given
 FLIP_OVERLAP = 0.8  # a flipped image explains a view when the mesh's outline overlaps its foreground so
@@ -218,6 +223,18 @@ class ViewVerdict:
     problem: str | None = None
     explained: bool = False
     swapped_with: str | None = None  # the camera whose view the image shows
+    other_frame: tuple[int, float] | None = None  # (frame, agreement) of another frame that explains it
+
+
+def shape_agreement(
+    foreground: np.ndarray, shape: FrameShape, K: np.ndarray, w2c: np.ndarray, size: tuple[int, int]
+) -> float:
+    """How well ``shape`` seen by ``K (3, 3)``, ``w2c (4, 4)`` explains ``foreground (h, w)`` (size ``(w,
+    h)``): the share of its head on the foreground, or, when larger and at least
+    :data:`OUTLINE_AGREEMENT`, the share of the foreground on its whole silhouette (the shadow case)."""
+    head = on_foreground(foreground, shape.silhouette.mask(K, w2c, size)) or 0.0
+    outline = foreground_on_outline(foreground, shape.full.mask(K, w2c, size))
+    return max(head, outline) if outline >= OUTLINE_AGREEMENT else head
 
 
 def check_view_image(
@@ -353,6 +370,34 @@ def _floor_percent(value: float) -> str:
     return f"{math.floor(value * 100 + 1e-9)}%"
 
 
+def best_other_frame(
+    image: np.ndarray,
+    K: np.ndarray,
+    w2c: np.ndarray,
+    shape: FrameShape,
+    frames: list[tuple[int, FrameShape, np.ndarray]],
+) -> tuple[int, float] | None:
+    """``(frame, agreement)`` of the other frame whose mesh explains ``image (H, W, 3)`` best, when one
+    agrees at least :data:`ALTERNATIVE_AGREEMENT` and :data:`FRAME_GAIN` better than the view's own
+    ``shape`` seen by ``K (3, 3)``, ``w2c (4, 4)``; else None. ``frames``: ``(frame, shape, w2c)`` of the
+    other frames seen by the same camera (canonical space)."""
+    height, width = image.shape[:2]
+    stride = silhouette_stride(width, height)
+    small = np.ascontiguousarray(image[::stride, ::stride, :3], dtype=np.float32)
+    size = (small.shape[1], small.shape[0])
+    K_small = subsampled_camera(K, stride)
+    foreground = image_foreground(small, hull_mask(shape.whole, K_small, w2c, size))
+    if foreground is None:
+        return None
+    given = shape_agreement(foreground, shape, K_small, w2c, size)
+    best: tuple[int, float] | None = None
+    for frame, frame_shape, frame_w2c in frames:
+        score = shape_agreement(foreground, frame_shape, K_small, frame_w2c, size)
+        if score >= max(ALTERNATIVE_AGREEMENT, given + FRAME_GAIN) and (best is None or score > best[1]):
+            best = (frame, score)
+    return best
+
+
 def mismatched_frames(shares_by_frame: dict[int, list[float]]) -> tuple[dict[int, float], float]:
     """Frames whose views agree with their tracked mesh clearly worse than the subject's other frames:
     ``({frame: median share}, the subject's median of frame medians)``. Needs two frames with at least two
@@ -418,6 +463,7 @@ class ImageCheck:
         self._swaps: dict[tuple[int, str], str] = {}  # (frame, camera) -> the problem its partner named
         self._judged: dict[str, int] = {}  # camera -> views judged
         self._withdrawn: dict[str, str] = {}  # camera (or "" for the whole subject) -> reason
+        self._withdrawn_frames: dict[int, str] = {}  # frame -> reason
 
     def holds(self, view: SourceView, item: str, image: np.ndarray) -> bool:
         """Judge ``image (H, W, 3)`` of ``view``; True when it is held back."""
@@ -455,6 +501,11 @@ class ImageCheck:
         verdict = check_view_image(
             view.camera.name, image, camera[0], camera[1], self.shapes[view.frame], cameras, conventions
         )
+        # Tried even when a flip, a convention or another camera explains the view: when frames are
+        # mispaired, most of a frame's views show the same other frame, and that outvotes chance fits.
+        if verdict.share is not None and verdict.share < SUSPECT_ON_FOREGROUND:
+            other = best_other_frame(image, camera[0], camera[1], self.shapes[view.frame], self._frames(view))
+            verdict = replace(verdict, other_frame=other)
         if verdict.share is None:
             return False
         self._shares.setdefault(view.frame, []).append(verdict.share)
@@ -463,31 +514,48 @@ class ImageCheck:
             self._swaps[(view.frame, verdict.swapped_with)] = verdict.problem
         swapped = self._swaps.get((view.frame, view.camera.name))
         if swapped is not None and not verdict.explained:
-            verdict = ViewVerdict(verdict.camera, verdict.share, swapped, True)
+            verdict = replace(verdict, problem=swapped, explained=True)
         if verdict.problem is None and verdict.share >= SUSPECT_ON_FOREGROUND:
             return False
         self._held.append((view, item, verdict))
         return True
 
+    def _frames(self, view: SourceView) -> list[tuple[int, FrameShape, np.ndarray]]:
+        """``(frame, shape, w2c)`` of the :data:`FRAMES_TRIED` frames nearest ``view``'s, seen by its camera
+        (canonical space)."""
+        nearest = sorted((f for f in self.shapes if f != view.frame), key=lambda f: (abs(f - view.frame), f))
+        w2c_native = np.asarray(view.camera.w2c, np.float64)
+        return [
+            (f, self.shapes[f], w2c_native @ invert_similarity(self.task.alignments[f].canonical_from_native))
+            for f in nearest[:FRAMES_TRIED]
+        ]
+
     def decide(self) -> tuple[list[tuple[str, str, str]], list[SourceView]]:
         """After every view was judged: ``(item, source, reason)`` of the held views to refuse, and the
         held views to release. Failures on more than :data:`SUBJECT_SHARE` of the subject's judged views
-        refuse the whole subject, and a camera whose views all fail or agree poorly (at least half fail)
-        is refused as a whole: one wrong calibration or a tracking of other images shows in every view,
-        whatever each view's own verdict guessed (:meth:`withdrawn` then names the views already
-        written)."""
-        refusals, released = self._view_decisions()
+        refuse the whole subject, a frame whose images are another frame's is refused as a whole, and a
+        camera whose views all fail or agree poorly (at least half fail) is refused as a whole: one wrong
+        calibration, pairing or tracking shows in every view, whatever each view's own verdict guessed
+        (:meth:`withdrawn` then names the views already written)."""
+        bad, baseline = mismatched_frames(self._shares)
+        # An image of another tracked frame shows that the tracking is of these images, only mispaired.
+        of_other_frames, self._withdrawn_frames = self._other_frame_reasons(bad)
+        refusals, released = self._view_decisions(bad, baseline, of_other_frames)
         judged = sum(self._judged.values())
         problems = {item: reason for item, _, reason in refusals}
-        if judged >= MIN_SUBJECT_VIEWS and len(problems) > SUBJECT_SHARE * judged:
+        if judged >= MIN_SUBJECT_VIEWS and len(problems.keys() - of_other_frames) > SUBJECT_SHARE * judged:
             reason = self._subject_reason(len(problems), judged, list(problems.values()))
-            self._withdrawn = {"": reason}
+            self._withdrawn, self._withdrawn_frames = {"": reason}, {}
             return [(item, view.source, reason) for view, item, _ in self._held], []
         by_camera: dict[str, list[str]] = {}
         for view, item, _ in self._held:
             by_camera.setdefault(view.camera.name, []).append(item)
         for camera, items in by_camera.items():
-            failing = [problems[i] for i in items if i in problems and FRAME_MISMATCH not in problems[i]]
+            failing = [
+                problems[i]
+                for i in items
+                if i in problems and i not in of_other_frames and FRAME_MISMATCH not in problems[i]
+            ]
             # Every judged view of the camera was held (none agreed well) and at least half failed.
             if (
                 len(items) >= 2
@@ -495,31 +563,26 @@ class ImageCheck:
                 and 2 * len(failing) >= len(items)
             ):
                 self._withdrawn[camera] = self._camera_reason(camera, len(failing), len(items), failing)
-        if self._withdrawn:
-            camera_of = {item: view.camera.name for view, item, _ in self._held}
-            refusals = [
-                (item, source, self._withdrawn.get(camera_of[item], reason))
-                for item, source, reason in refusals
-            ]
-            refusals += [
-                (view_item(v), v.source, self._withdrawn[v.camera.name])
-                for v in released
-                if v.camera.name in self._withdrawn
-            ]
-            released = [v for v in released if v.camera.name not in self._withdrawn]
-        return refusals, released
+        held = {item: view for view, item, _ in self._held}
+        refusals = [
+            (item, source, self._withdrawal(held[item]) or reason) for item, source, reason in refusals
+        ]
+        refusals += [(view_item(v), v.source, self._withdrawal(v)) for v in released if self._withdrawal(v)]
+        return refusals, [v for v in released if not self._withdrawal(v)]
+
+    def _withdrawal(self, view: SourceView) -> str | None:
+        """The reason a subject-, frame- or camera-wide failure refuses ``view``, if one does."""
+        return (
+            self._withdrawn.get("")
+            or self._withdrawn_frames.get(view.frame)
+            or self._withdrawn.get(view.camera.name)
+        )
 
     def withdrawn(self) -> dict[str, str]:
         """After :meth:`decide`: item -> reason of every view of the subject (any pattern, any frame) that
-        a subject- or camera-wide failure refuses, including views already written."""
-        if not self._withdrawn:
-            return {}
-        whole = self._withdrawn.get("")
-        return {
-            view_item(v): whole or self._withdrawn[v.camera.name]
-            for v in self.task.plan.views
-            if whole is not None or v.camera.name in self._withdrawn
-        }
+        a subject-, frame- or camera-wide failure refuses, including views already written."""
+        reasons = {view_item(v): self._withdrawal(v) for v in self.task.plan.views}
+        return {item: reason for item, reason in reasons.items() if reason is not None}
 
     def _subject_reason(self, failing: int, judged: int, problems: list[str]) -> str:
         subject = self.task.plan.subject
@@ -540,16 +603,54 @@ class ImageCheck:
             f"finding: {_most_frequent(problems)}"
         )
 
-    def _view_decisions(self) -> tuple[list[tuple[str, str, str]], list[SourceView]]:
+    def _other_frame_reasons(self, bad: dict[int, float]) -> tuple[dict[str, str], dict[int, str]]:
+        """``(item -> reason, frame -> reason)``: the held views whose images another frame's mesh explains
+        (:func:`best_other_frame`), and the frames refused as a whole because of them. A frame is when
+        most of its judged views show the same other frame, or when that frame's views show it in turn
+        (the two exchanged their images); one view alone is refused in a frame that otherwise agrees
+        with its mesh (not in ``bad``). A wrong mesh for a frame makes neighbouring frames fit its
+        images better too, but neither most of them the same one nor the neighbours' own images."""
+        subject = self.task.plan.subject
+        votes = Counter((view.frame, v.other_frame[0]) for view, _, v in self._held if v.other_frame)
+        frames: dict[int, str] = {}
+        for (frame, other), count in sorted(votes.items()):
+            judged = len(self._shares[frame])
+            exchanged = votes.get((other, frame), 0) > 0
+            if (count >= 2 and 2 * count > judged) or exchanged:
+                frames[frame] = (
+                    f"subject {subject} frame {frame}: {count} of its {judged} judged images show the head "
+                    f"of frame {other}"
+                    + (f", and frame {other}'s images that of frame {frame}" if exchanged else "")
+                    + ": images and tracking are paired with the wrong frames, so every view of the frame is "
+                    "refused — check the frame numbers of the image folders and of the tracking"
+                )
+        reasons = {}
+        for view, item, verdict in self._held:
+            if view.frame in frames:
+                reasons[item] = frames[view.frame]
+            elif verdict.other_frame is not None and view.frame not in bad:
+                other, score = verdict.other_frame
+                reasons[item] = (
+                    f"subject {subject} frame {view.frame}: the image of camera {view.camera.name} shows the "
+                    f"head of frame {other} ({_floor_percent(verdict.share)} of the projected head on the "
+                    f"image's foreground, {_floor_percent(score)} with frame {other}'s mesh): an image from "
+                    "another frame — check its file"
+                )
+        return reasons, frames
+
+    def _view_decisions(
+        self, bad: dict[int, float], baseline: float, of_other_frames: dict[str, str]
+    ) -> tuple[list[tuple[str, str, str]], list[SourceView]]:
         """:meth:`decide` for each held view on its own."""
         subject = self.task.plan.subject
-        bad, baseline = mismatched_frames(self._shares)
         refusals, released = [], []
         for view, item, verdict in self._held:
             swapped = self._swaps.get((view.frame, view.camera.name))
             if swapped is not None and not verdict.explained:
-                verdict = ViewVerdict(verdict.camera, verdict.share, swapped, True)
-            if verdict.explained:
+                verdict = replace(verdict, problem=swapped, explained=True)
+            if item in of_other_frames:
+                refusals.append((item, view.source, of_other_frames[item]))
+            elif verdict.explained:
                 refusals.append(
                     (item, view.source, f"subject {subject} frame {view.frame}: {verdict.problem}")
                 )

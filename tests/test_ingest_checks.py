@@ -224,6 +224,41 @@ def test_mesh_of_another_pose_quarantines_the_frame(capture, tmp_path):
     assert all("mesh of another frame or head pose" in e["reason"] for e in refused)
 
 
+def swap_frame_images(capture: Path, first: str, second: str, cameras=("c0", "c1", "c2", "c3", "c4")) -> None:
+    """The images of two frames exchanged for ``cameras``, as when image folders are numbered wrongly."""
+    for camera in cameras:
+        a, b = (capture / "images" / "s1" / frame / f"{camera}.png" for frame in (first, second))
+        a_bytes, b_bytes = a.read_bytes(), b.read_bytes()
+        a.write_bytes(b_bytes)
+        b.write_bytes(a_bytes)
+
+
+def test_images_of_two_frames_exchanged_refuse_both_frames_as_mispaired(capture, tmp_path):
+    """Frames 0 and 2 (6 degrees, 8 mm apart) exchange their images. Most views still agree with the wrong
+    mesh within the held-back margin, and the frame comparison sees two of three frames disagree without
+    telling which; a view of each frame showing the other's head names the exchange, and every view of
+    both frames is refused, rows already written included."""
+    swap_frame_images(capture, "000000", "000002")
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    refused = {e["item"]: e["reason"] for e in quarantine(tmp_path / "out")}
+    assert set(refused) == {f"s1/00000{f}/c{k}/full" for f in (0, 2) for k in range(5)}
+    for item, reason in refused.items():
+        other = "2" if item.split("/")[1] == "000000" else "0"
+        assert f"judged images show the head of frame {other}, and frame {other}'s images that of" in reason
+    assert len(NormalizedDataset(tmp_path / "out" / "custom")) == 5  # frame 1's images are its own
+
+
+def test_one_image_of_another_frame_is_named_with_that_frame(capture, tmp_path):
+    folder = capture / "images" / "s1"
+    (folder / "000000" / "c3.png").write_bytes((folder / "000002" / "c3.png").read_bytes())
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    [entry] = quarantine(tmp_path / "out")
+    assert entry["item"] == "s1/000000/c3/full"
+    assert "the image of camera c3 shows the head of frame 2" in entry["reason"]
+
+
 def test_view_partly_off_its_foreground_in_a_good_frame_is_written_after_all(capture, tmp_path, monkeypatch):
     """A view held back as doubtful (part of the head dark, as under black hair) is released when its
     frame agrees with the subject's other frames."""
