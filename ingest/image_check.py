@@ -173,6 +173,14 @@ def silhouette_stride(width: int, height: int) -> int:
     return max(1, math.ceil(max(width, height) / SILHOUETTE_SIDE))
 
 
+def subsampled_view(image: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(small (h, w, 3) float32, its K (3, 3), stride)``: ``image (H, W, C)`` subsampled to at most
+    :data:`SILHOUETTE_SIDE` pixels on its larger side, as the image check reads it."""
+    stride = silhouette_stride(image.shape[1], image.shape[0])
+    small = np.ascontiguousarray(image[::stride, ::stride, :3], dtype=np.float32)
+    return small, subsampled_camera(K, stride), stride
+
+
 def overlap_ratio(a: np.ndarray, b: np.ndarray) -> float:
     """Intersection over union of two ``(h, w)`` bool masks (0 when both are empty)."""
     union = int(np.count_nonzero(a | b))
@@ -252,10 +260,8 @@ def check_view_image(
     (its image may be theirs), after ``conventions()``: this camera read with each of
     :data:`CAMERA_ALTERNATIVES`, ``(meaning, fix, K, w2c)``."""
     height, width = image.shape[:2]
-    stride = silhouette_stride(width, height)
-    small = np.ascontiguousarray(image[::stride, ::stride, :3], dtype=np.float32)
+    small, K_small, stride = subsampled_view(image, K)
     size = (small.shape[1], small.shape[0])
-    K_small = subsampled_camera(K, stride)
     # The whole mesh's outline (neck included; the convex hull of a few vertices) keeps the background
     # estimate off the head and is what a flip is judged by; the share is the exact silhouette's.
     silhouette = shape.silhouette
@@ -379,19 +385,27 @@ def best_other_frame(
 ) -> tuple[int, float] | None:
     """``(frame, agreement)`` of the other frame whose mesh explains ``image (H, W, 3)`` best, when one
     agrees at least :data:`ALTERNATIVE_AGREEMENT` and :data:`FRAME_GAIN` better than the view's own
-    ``shape`` seen by ``K (3, 3)``, ``w2c (4, 4)``; else None. ``frames``: ``(frame, shape, w2c)`` of the
+    ``shape`` seen by ``K (3, 3)``, ``w2c (4, 4)``, and its outline overlaps the image's foreground better;
+    else None. ``frames``: ``(frame, shape, w2c)`` of the
     other frames seen by the same camera (canonical space)."""
-    height, width = image.shape[:2]
-    stride = silhouette_stride(width, height)
-    small = np.ascontiguousarray(image[::stride, ::stride, :3], dtype=np.float32)
+    small, K_small, _ = subsampled_view(image, K)
     size = (small.shape[1], small.shape[0])
-    K_small = subsampled_camera(K, stride)
-    foreground = image_foreground(small, hull_mask(shape.whole, K_small, w2c, size))
+    whole = hull_mask(shape.whole, K_small, w2c, size)
+    foreground = image_foreground(small, whole)
     if foreground is None:
+        return None
+    # Exact silhouettes (the costly part) only for frames whose outline overlaps the foreground better.
+    overlap = overlap_ratio(foreground, whole)
+    closer = [
+        (frame, frame_shape, frame_w2c)
+        for frame, frame_shape, frame_w2c in frames
+        if overlap_ratio(foreground, hull_mask(frame_shape.whole, K_small, frame_w2c, size)) > overlap
+    ]
+    if not closer:
         return None
     given = shape_agreement(foreground, shape, K_small, w2c, size)
     best: tuple[int, float] | None = None
-    for frame, frame_shape, frame_w2c in frames:
+    for frame, frame_shape, frame_w2c in closer:
         score = shape_agreement(foreground, frame_shape, K_small, frame_w2c, size)
         if score >= max(ALTERNATIVE_AGREEMENT, given + FRAME_GAIN) and (best is None or score > best[1]):
             best = (frame, score)
