@@ -44,6 +44,7 @@ CHECKS: dict[str, str] = {
     "fit-residual": "the tracked mesh fits the template",
     "lens": "distortion coefficients are those of a real lens, in OpenCV's order",
     "silhouette": "the projected head lies on the image's own foreground",
+    "colour-order": "colour images are in RGB order: on the head, red is above blue",
 }
 CAMERA_CHECKS = ("rotation", "principal-point", "in-front", "facing", "projection")
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from relightanyone.align.geometry import invert_similarity
 from relightanyone.ingest.checks import CAMERA_ALTERNATIVES, SUBJECT_SHARE, view_item
+from relightanyone.ingest.decode import apply_colour_calibration
 from relightanyone.ingest.records import SourceView
 from relightanyone.ingest.steps import MeshSilhouette
 
@@ -54,6 +55,13 @@ BORDER_UNIFORM = 0.04  # border pixels within this of their median (relative to 
 FOREGROUND_CONTRAST = 0.01
 BACKGROUND_NOISE_FACTOR = 4.0
 MIN_SUBJECT_VIEWS = 4  # judged views a subject needs before its silhouette failures refuse it as a whole
+# Colour order: on a head under white light red is above blue (skin, lips, brown and black hair). When it is
+# the other way round in COLOUR_ORDER_SHARE of a subject's judged views (at least MIN_SUBJECT_VIEWS), by
+# BLUE_OVER_RED, the images are in BGR order. Only display-referred images are judged: a raw sensor's
+# camera RGB (DNG) or scene-linear EXR need not be white-balanced.
+COLOUR_ORDER_SHARE = 0.9
+BLUE_OVER_RED = 1.1
+COLOUR_ORDER_UNJUDGED_CODECS = ("dng-raw", "exr-linear")
 FRAME_MISMATCH = "the tracked mesh disagrees with the frame's images"
 
 
@@ -232,6 +240,7 @@ class ViewVerdict:
     explained: bool = False
     swapped_with: str | None = None  # the camera whose view the image shows
     other_frame: tuple[int, float] | None = None  # (frame, agreement) of another frame that explains it
+    head_rgb: tuple[float, float, float] | None = None  # mean colour of the head on the foreground
 
 
 def shape_agreement(
@@ -273,6 +282,12 @@ def check_view_image(
     share = on_foreground(foreground, head)
     if share is None:
         return ViewVerdict(camera, share)
+    on_head = small[head & foreground]
+    head_rgb = tuple(float(c) for c in on_head.mean(axis=0)) if len(on_head) else None
+
+    def verdict(*args, **kwargs) -> ViewVerdict:
+        return ViewVerdict(camera, *args, head_rgb=head_rgb, **kwargs)
+
     # The whole mesh's outline against the foreground, as given and flipped: a flip shows as a much
     # better overlap, even where the neck-cut head still lies on the foreground.
     overlap = overlap_ratio(foreground, whole)
@@ -299,15 +314,14 @@ def check_view_image(
             and score >= overlap + FLIP_OUTLINE_GAIN
             and (on_foreground(flipped, head) or 0.0) >= max(ALTERNATIVE_AGREEMENT, share + FLIP_SHARE_GAIN)
         ):
-            return ViewVerdict(
-                camera,
+            return verdict(
                 share,
                 f"the image of camera {camera} is {what} relative to its mask ({stated}; {score:.0%} "
                 "with the image turned back) — fix the image's orientation",
                 True,
             )
     if share >= ON_FOREGROUND:
-        return ViewVerdict(camera, share)
+        return verdict(share)
     # Part of the head is off the foreground: shadowed skin, or the wrong camera or image. Another reading
     # that puts the head clearly better on the foreground names the mistake; otherwise the view agrees when
     # nearly all of its foreground lies on the whole mesh's exact silhouette (the shadow case; not its
@@ -336,8 +350,7 @@ def check_view_image(
     for meaning, fix, K_alt, w2c_alt in conventions() if conventions is not None else ():
         scores = agreement(K_alt, w2c_alt)
         if explains(scores):
-            return ViewVerdict(
-                camera,
+            return verdict(
                 share,
                 f"camera {camera}: {stated}; {meaning} (changed so, {scores[0]:.0%} of it on the foreground) "
                 f"— {fix}",
@@ -351,8 +364,7 @@ def check_view_image(
         if explains(scores) and (best is None or scores[0] > best[0]):
             best = (scores[0], other)
     if best is not None:
-        return ViewVerdict(
-            camera,
+        return verdict(
             share,
             f"the image of camera {camera} shows camera {best[1]}'s view ({stated}, {best[0]:.0%} with "
             f"{best[1]}'s camera): views of cameras {camera} and {best[1]} look swapped — check the "
@@ -361,9 +373,8 @@ def check_view_image(
             best[1],
         )
     if share >= ON_FOREGROUND:
-        return ViewVerdict(camera, share)
-    return ViewVerdict(
-        camera,
+        return verdict(share)
+    return verdict(
         share,
         f"{stated}: at best {_floor_percent(share)} agree (at least {ON_FOREGROUND:.0%} expected) — another "
         "frame's image, a wrong calibration of this camera, or the head hidden?",
@@ -466,6 +477,9 @@ class ImageCheck:
         self.task = task
         self.shapes = {frame: FrameShape.of(silhouette) for frame, silhouette in silhouettes.items()}
         self.enabled = "silhouette" not in accepted
+        self.colour_order_enabled = "colour-order" not in accepted
+        self._head_colours: list[np.ndarray] = []  # (3,) calibrated mean colour of each judged head
+        self._checks: dict[str, str] = {}  # reason -> the check that gave it, when not "silhouette"
         self._views: dict[int, list[SourceView]] = {}
         for view in task.plan.views:
             self._views.setdefault(view.frame, []).append(view)
@@ -481,7 +495,8 @@ class ImageCheck:
 
     def holds(self, view: SourceView, item: str, image: np.ndarray) -> bool:
         """Judge ``image (H, W, 3)`` of ``view``; True when it is held back."""
-        if not self.enabled or view.pattern != "full" or view.frame not in self.shapes:
+        judging = self.enabled or self.colour_order_enabled
+        if not judging or view.pattern != "full" or view.frame not in self.shapes:
             return False
         if item in self._released:
             return False
@@ -522,6 +537,11 @@ class ImageCheck:
             verdict = replace(verdict, other_frame=other)
         if verdict.share is None:
             return False
+        if verdict.head_rgb is not None and view.image.codec not in COLOUR_ORDER_UNJUDGED_CODECS:
+            mean = np.asarray(verdict.head_rgb, np.float32).reshape(1, 1, 3)
+            self._head_colours.append(apply_colour_calibration(mean, view.colour).reshape(3))
+        if not self.enabled:
+            return False
         self._shares.setdefault(view.frame, []).append(verdict.share)
         self._judged[view.camera.name] = self._judged.get(view.camera.name, 0) + 1
         if verdict.swapped_with is not None:
@@ -551,6 +571,11 @@ class ImageCheck:
         camera whose views all fail or agree poorly (at least half fail) is refused as a whole: one wrong
         calibration, pairing or tracking shows in every view, whatever each view's own verdict guessed
         (:meth:`withdrawn` then names the views already written)."""
+        colour_order = self._colour_order_reason()
+        if colour_order is not None:
+            self._checks[colour_order] = "colour-order"
+            self._withdrawn = {"": colour_order}
+            return [(item, view.source, colour_order) for view, item, _ in self._held], []
         bad, baseline = mismatched_frames(self._shares)
         # An image of another tracked frame shows that the tracking is of these images, only mispaired.
         of_other_frames, self._withdrawn_frames = self._other_frame_reasons(bad)
@@ -597,6 +622,28 @@ class ImageCheck:
         a subject-, frame- or camera-wide failure refuses, including views already written."""
         reasons = {view_item(v): self._withdrawal(v) for v in self.task.plan.views}
         return {item: reason for item, reason in reasons.items() if reason is not None}
+
+    def check_of(self, reason: str) -> str:
+        """The name of the check (``--accept-check NAME``) that gave ``reason``."""
+        return self._checks.get(reason, "silhouette")
+
+    def _colour_order_reason(self) -> str | None:
+        """The reason every view of the subject is refused when its heads are bluer than red
+        (:data:`COLOUR_ORDER_SHARE` of its judged views, at least :data:`MIN_SUBJECT_VIEWS`), else None."""
+        if not self.colour_order_enabled or len(self._head_colours) < MIN_SUBJECT_VIEWS:
+            return None
+        colours = np.asarray(self._head_colours)
+        blue_over_red = colours[:, 2] / np.maximum(colours[:, 0], 1e-6)
+        bluer = int(np.count_nonzero(blue_over_red > BLUE_OVER_RED))
+        if bluer < COLOUR_ORDER_SHARE * len(colours):
+            return None
+        return (
+            f"subject {self.task.plan.subject}: on the head, blue is above red in {bluer} of {len(colours)} "
+            f"judged views (median blue/red {float(np.median(blue_over_red)):.2f}; skin and hair under white "
+            "light are redder than blue), so every view of the subject is refused: the images look like BGR "
+            "(OpenCV's channel order; cv2.imwrite expects BGR arrays) — write them in RGB order, or pass "
+            "--accept-check colour-order for a capture under blue light"
+        )
 
     def _subject_reason(self, failing: int, judged: int, problems: list[str]) -> str:
         subject = self.task.plan.subject

@@ -273,12 +273,12 @@ def run_subject_task(writer, settings: IngestSettings, task: SubjectTask) -> Tas
             result.bytes += len(row.image) + len(row.mask)
             written[item] = (row.key, view.source, len(row.image) + len(row.mask))
         for held_item, held_source, reason in image_check.refusals():
-            refuse(part, held_item, held_source, f"check silhouette: {reason}", "check")
+            refuse(part, held_item, held_source, f"check {image_check.check_of(reason)}: {reason}", "check")
         withdrawn = {item: reason for item, reason in image_check.withdrawn().items() if item in written}
         part.withdraw({written[item][0] for item in withdrawn})
         for item, reason in withdrawn.items():
             _, source, size = written[item]
-            refuse(part, item, source, f"check silhouette: {reason}", "check")
+            refuse(part, item, source, f"check {image_check.check_of(reason)}: {reason}", "check")
             result.rows -= 1
             result.bytes -= size
     return result
@@ -313,4 +313,7 @@ def check_images(settings: IngestSettings, task: SubjectTask, frames: int | None
             listed.add(item)
             items_by_reason.setdefault(reason, []).append(item)
     # One finding per reason: a swapped pair, or a subject refused as a whole, is one line.
-    return [Finding("silhouette", "view", reason, tuple(items)) for reason, items in items_by_reason.items()]
+    return [
+        Finding(check.check_of(reason), "view", reason, tuple(items))
+        for reason, items in items_by_reason.items()
+    ]

@@ -194,6 +194,33 @@ def test_swapped_images_quarantine_both_views_naming_the_pair(capture, tmp_path)
     assert all("cameras c0 and c2 look swapped" in reason for reason in refused.values())
 
 
+def in_bgr_order(capture: Path) -> None:
+    """Every image written from an RGB array by ``cv2.imwrite`` (which expects BGR): red and blue swapped."""
+    for path in (capture / "images").rglob("*.png"):
+        cv2.imwrite(str(path), cv2.imread(str(path))[..., ::-1])
+
+
+def test_images_in_bgr_order_refuse_the_subject_with_the_fix(capture, tmp_path):
+    in_bgr_order(capture)
+    result = ingest_custom(capture, tmp_path / "out")
+    assert result.exit_code == 1, result.output  # no row was written
+    refused = quarantine(tmp_path / "out")
+    assert len(refused) == 15
+    for entry in refused:
+        assert entry["reason"].startswith("check colour-order: subject s1: on the head, blue is above red in")
+        assert "write them in RGB order" in entry["reason"]
+    doctor = run("doctor", "custom", capture)
+    assert doctor.exit_code == 1 and "[override: --accept-check colour-order]" in doctor.output
+
+
+def test_colour_order_can_be_accepted_for_a_capture_under_blue_light(capture, tmp_path):
+    in_bgr_order(capture)
+    result = ingest_custom(capture, tmp_path / "out", "--accept-check", "colour-order")
+    assert result.exit_code == 0, result.output
+    assert quarantine(tmp_path / "out") == []
+    assert len(NormalizedDataset(tmp_path / "out" / "custom")) == 15
+
+
 def test_upside_down_image_is_quarantined_with_its_orientation(capture, tmp_path):
     path = capture / "images" / "s1" / "000000" / "c3.png"
     cv2.imwrite(str(path), cv2.imread(str(path))[::-1, ::-1])

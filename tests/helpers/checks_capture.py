@@ -79,6 +79,7 @@ def make_rendered_capture(root: Path, subject: str = "s1", frames=(0, 1, 2)) -> 
         folder = root / "images" / subject / f"{frame:06d}"
         folder.mkdir(parents=True)
         for name, camera in cameras.items():
-            cv2.imwrite(str(folder / f"{name}.png"), render(posed, template.faces, camera, rng))
+            rgb = render(posed, template.faces, camera, rng)
+            cv2.imwrite(str(folder / f"{name}.png"), rgb[..., ::-1])  # OpenCV writes BGR arrays
         write_obj(root / "meshes" / subject / f"{frame:06d}.obj", posed, template.faces)
     return root
