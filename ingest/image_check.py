@@ -282,8 +282,8 @@ def check_view_image(
     share = on_foreground(foreground, head)
     if share is None:
         return ViewVerdict(camera, share)
-    on_head = small[head & foreground]
-    head_rgb = tuple(float(c) for c in on_head.mean(axis=0)) if len(on_head) else None
+    on_head = (head & foreground).view(np.uint8)
+    head_rgb = cv2.mean(small, mask=on_head)[:3] if on_head.any() else None
 
     def verdict(*args, **kwargs) -> ViewVerdict:
         return ViewVerdict(camera, *args, head_rgb=head_rgb, **kwargs)
@@ -478,7 +478,8 @@ class ImageCheck:
         self.shapes = {frame: FrameShape.of(silhouette) for frame, silhouette in silhouettes.items()}
         self.enabled = "silhouette" not in accepted
         self.colour_order_enabled = "colour-order" not in accepted
-        self._head_colours: list[np.ndarray] = []  # (3,) calibrated mean colour of each judged head
+        # id(colour calibration) -> (calibration, the mean colours (3,) of the judged heads it applies to)
+        self._head_colours: dict[int, tuple[object, list[tuple[float, float, float]]]] = {}
         self._checks: dict[str, str] = {}  # reason -> the check that gave it, when not "silhouette"
         self._views: dict[int, list[SourceView]] = {}
         for view in task.plan.views:
@@ -538,8 +539,7 @@ class ImageCheck:
         if verdict.share is None:
             return False
         if verdict.head_rgb is not None and view.image.codec not in COLOUR_ORDER_UNJUDGED_CODECS:
-            mean = np.asarray(verdict.head_rgb, np.float32).reshape(1, 1, 3)
-            self._head_colours.append(apply_colour_calibration(mean, view.colour).reshape(3))
+            self._head_colours.setdefault(id(view.colour), (view.colour, []))[1].append(verdict.head_rgb)
         if not self.enabled:
             return False
         self._shares.setdefault(view.frame, []).append(verdict.share)
@@ -630,9 +630,16 @@ class ImageCheck:
     def _colour_order_reason(self) -> str | None:
         """The reason every view of the subject is refused when its heads are bluer than red
         (:data:`COLOUR_ORDER_SHARE` of its judged views, at least :data:`MIN_SUBJECT_VIEWS`), else None."""
-        if not self.colour_order_enabled or len(self._head_colours) < MIN_SUBJECT_VIEWS:
+        if not self.colour_order_enabled:
             return None
-        colours = np.asarray(self._head_colours)
+        # Calibrated as the rows are (on the mean colour), once per calibration.
+        calibrated = [
+            apply_colour_calibration(np.asarray([means], np.float32), calibration)[0]
+            for calibration, means in self._head_colours.values()
+        ]
+        colours = np.concatenate(calibrated) if calibrated else np.zeros((0, 3), np.float32)
+        if len(colours) < MIN_SUBJECT_VIEWS:
+            return None
         blue_over_red = colours[:, 2] / np.maximum(colours[:, 0], 1e-6)
         bluer = int(np.count_nonzero(blue_over_red > BLUE_OVER_RED))
         if bluer < COLOUR_ORDER_SHARE * len(colours):
