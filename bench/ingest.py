@@ -313,7 +313,7 @@ def checks_cost(plan, world: Path, preset: str = PRESET) -> dict:
     mostly measures the other processes."""
     from relightanyone.ingest.checks import check_tasks, view_item
     from relightanyone.ingest.decode import TaskDecoder
-    from relightanyone.ingest.image_check import ImageCheck
+    from relightanyone.ingest.image_decisions import ImageCheck
     from relightanyone.ingest.runner import ingest_dataset, prepare
     from relightanyone.ingest.subject_task import FrameMesh, canonical_mesh
 

@@ -24,7 +24,7 @@ from relightanyone.ingest.decode import (
     apply_colour_calibration,
     set_decoder_threads,
 )
-from relightanyone.ingest.image_check import ImageCheck
+from relightanyone.ingest.image_decisions import ImageCheck
 from relightanyone.ingest.records import SourceView, SubjectPlan
 from relightanyone.ingest.steps import (
     MeshSilhouette,

@@ -30,7 +30,8 @@ from relightanyone.ingest.checks import (
     surround_findings,
 )
 from relightanyone.ingest.decode import TaskDecoder
-from relightanyone.ingest.image_check import hull_indices, hull_mask, image_foreground, mismatched_frames
+from relightanyone.ingest.image_check import hull_indices, hull_mask, image_foreground
+from relightanyone.ingest.image_decisions import mismatched_frames
 from relightanyone.render.mesh import read_obj
 from relightanyone.synth.capture import look_at_w2c
 from relightanyone.synth.presets import DatasetSize
