@@ -64,22 +64,27 @@ def frame_cameras(
     coordinates in native units, ``w2c_native · canonical_from_native⁻¹``: the pixels of
     :func:`~relightanyone.align.geometry.w2c_to_canonical`, which also rescales the camera to metres and
     re-orthonormalises it for storage (a projection needs neither)."""
-    native_from_canonical = invert_similarity(canonical_from_native)
     out = {}
     for view in views:
         if view.camera.name not in out:
-            w2c = np.asarray(view.camera.w2c, np.float64) @ native_from_canonical
             out[view.camera.name] = (
                 np.asarray(view.camera.K, np.float64),
-                w2c,
+                canonical_w2c(view.camera.w2c, canonical_from_native),
                 view.camera.width,
                 view.camera.height,
             )
     return out
 
 
+def canonical_w2c(w2c_native: np.ndarray, canonical_from_native: np.ndarray) -> np.ndarray:
+    """``(4, 4)`` a native ``w2c_native`` as a map from canonical space to the camera (native units):
+    ``w2c_native · canonical_from_native⁻¹``."""
+    return np.asarray(w2c_native, np.float64) @ invert_similarity(canonical_from_native)
+
+
 class ImageCheck:
-    """The silhouette check over one subject's views (an ingest task, ``doctor``).
+    """The image checks (``silhouette``, ``colour-order``) over one subject's views (an ingest task,
+    ``doctor``).
 
     A view that fails, or agrees with its mesh less than :data:`SUSPECT_ON_FOREGROUND`, is held back (no
     row) until every view was seen; then the frames are compared (:func:`mismatched_frames`): held views of
@@ -129,7 +134,7 @@ class ImageCheck:
 
         def conventions() -> list[tuple[str, str, np.ndarray, np.ndarray]]:
             """This camera read with each alternative convention, as canonical cameras (only on failure)."""
-            native_from_canonical = invert_similarity(self.task.alignments[view.frame].canonical_from_native)
+            canonical_from_native = self.task.alignments[view.frame].canonical_from_native
             K, w2c, width, height = (
                 view.camera.K,
                 np.asarray(view.camera.w2c),
@@ -140,24 +145,24 @@ class ImageCheck:
                 (meaning, fix, *change(K, w2c, width, height)) for meaning, fix, change in CAMERA_ALTERNATIVES
             ]
             return [
-                (meaning, fix, K_alt, w2c_alt @ native_from_canonical)
+                (meaning, fix, K_alt, canonical_w2c(w2c_alt, canonical_from_native))
                 for meaning, fix, K_alt, w2c_alt in changed
             ]
 
         verdict = check_view_image(
             view.camera.name, image, camera[0], camera[1], self.shapes[view.frame], cameras, conventions
         )
-        # Tried even when a flip, a convention or another camera explains the view: when frames are
-        # mispaired, most of a frame's views show the same other frame, and that outvotes chance fits.
-        if verdict.share is not None and verdict.share < SUSPECT_ON_FOREGROUND:
-            other = best_other_frame(image, camera[0], camera[1], self.shapes[view.frame], self._frames(view))
-            verdict = replace(verdict, other_frame=other)
         if verdict.share is None:
             return False
         if verdict.head_rgb is not None and view.image.codec not in COLOUR_ORDER_UNJUDGED_CODECS:
             self._head_colours.setdefault(id(view.colour), (view.colour, []))[1].append(verdict.head_rgb)
         if not self.enabled:
             return False
+        # Tried even when a flip, a convention or another camera explains the view: when frames are
+        # mispaired, most of a frame's views show the same other frame, and that outvotes chance fits.
+        if verdict.share < SUSPECT_ON_FOREGROUND:
+            other = best_other_frame(image, camera[0], camera[1], self.shapes[view.frame], self._frames(view))
+            verdict = replace(verdict, other_frame=other)
         self._shares.setdefault(view.frame, []).append(verdict.share)
         self._judged[view.camera.name] = self._judged.get(view.camera.name, 0) + 1
         if verdict.swapped_with is not None:
@@ -174,9 +179,8 @@ class ImageCheck:
         """``(frame, shape, w2c)`` of the :data:`FRAMES_TRIED` frames nearest ``view``'s, seen by its camera
         (canonical space)."""
         nearest = sorted((f for f in self.shapes if f != view.frame), key=lambda f: (abs(f - view.frame), f))
-        w2c_native = np.asarray(view.camera.w2c, np.float64)
         return [
-            (f, self.shapes[f], w2c_native @ invert_similarity(self.task.alignments[f].canonical_from_native))
+            (f, self.shapes[f], canonical_w2c(view.camera.w2c, self.task.alignments[f].canonical_from_native))
             for f in nearest[:FRAMES_TRIED]
         ]
 
