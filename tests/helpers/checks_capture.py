@@ -1,7 +1,8 @@
 """A custom capture whose images show the head: the tracked mesh drawn over a black studio background,
 seen by five cameras placed unevenly around it (so that no two views look alike), two frames with
 different head poses. The capture's world is the studio's: z up, origin on the floor, not at the head.
-The convention-check tests mutate it the way users get captures wrong."""
+The convention-check tests mutate it the way users get captures wrong, and run the command line on it
+(:func:`ingest_custom`, :func:`quarantine`)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from click.testing import CliRunner
 
 from relightanyone.align.geometry import similarity, transform_points
+from relightanyone.cli import cli
 from relightanyone.ingest.steps import MeshSilhouette
 from relightanyone.synth.capture import look_at_w2c
 from relightanyone.synth.template import make_template, write_obj, write_template
@@ -83,3 +86,27 @@ def make_rendered_capture(root: Path, subject: str = "s1", frames=(0, 1, 2)) -> 
             cv2.imwrite(str(folder / f"{name}.png"), rgb[..., ::-1])  # OpenCV writes BGR arrays
         write_obj(root / "meshes" / subject / f"{frame:06d}.obj", posed, template.faces)
     return root
+
+
+def run(*args: str):
+    return CliRunner().invoke(cli, [str(a) for a in args])
+
+
+def ingest_custom(capture: Path, out: Path, *extra: str):
+    return run("ingest", "custom", capture, "--out", out, "--preset", "tiny", *extra)
+
+
+def quarantine(out: Path) -> list[dict]:
+    path = out / "custom" / "quarantine.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.is_file() else []
+
+
+def other_pose_mesh(capture: Path) -> None:
+    """Frame 1 gets the mesh of a head pose 8 degrees and 13 mm away from what its images show."""
+    template = make_template(12)
+    angle = np.radians(8.0)
+    tilt = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])
+    wrong = head_pose(1) @ similarity(1.0, tilt, [0.013, 0.0, 0.0])
+    write_obj(
+        capture / "meshes" / "s1" / "000001.obj", transform_points(wrong, template.vertices), template.faces
+    )
